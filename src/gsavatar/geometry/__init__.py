@@ -1,0 +1,1 @@
+"""Geometry: rotations, forward kinematics and linear blend skinning, cameras, meshes."""

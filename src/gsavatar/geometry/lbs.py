@@ -1,0 +1,152 @@
+"""Forward kinematics and linear blend skinning (vectorised torch, batched over frames).
+
+Frames: ``posed_from_rest`` transforms map a rest-pose (template) point to its posed
+world position. Root motion: ``world = R_root (x - head_root) + head_root + t_root``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from gsavatar.data_schema.rig import Rig
+from gsavatar.geometry.rotations import axis_angle_to_matrix
+
+
+class RigTensors:
+    """A rig's constant arrays as tensors, built once and reused every frame."""
+
+    def __init__(self, rig: Rig, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> None:
+        self.heads = torch.as_tensor(rig.heads(), dtype=dtype, device=device)  # [J, 3]
+        self.parents = rig.parents().tolist()  # len J, -1 for root
+        self.num_joints = rig.num_joints
+        self.pose_dim = rig.pose_dim
+        # Per pose slot: joint index, euler axis (zero for axis-angle slots) and, for
+        # axis-angle triplets, the slot index of their first component.
+        axes, aa_starts, eul_slots, eul_joints = [], [], [], []
+        slot = 0
+        order: list[tuple[int, str, int]] = []  # (joint, kind, slot) in listed order
+        for p in rig.params:
+            j = rig.joint_index(p.joint)
+            order.append((j, p.kind, slot))
+            if p.kind == "euler":
+                axes.append(p.axis)
+                eul_slots.append(slot)
+                eul_joints.append(j)
+            else:
+                aa_starts.append(slot)
+            slot += p.size
+        self.order = order
+        self.euler_slots = torch.as_tensor(eul_slots, dtype=torch.long, device=device)
+        self.euler_axes = torch.as_tensor(np.array(axes, dtype=np.float32).reshape(-1, 3), dtype=dtype, device=device)
+
+
+def pose_to_local_rotations(pose: Tensor, rig: Rig | RigTensors) -> Tensor:
+    """Joint-local rotations from the pose vector.
+
+    pose: [B, P] radians (rig order) -> [B, J, 3, 3]; joints without parameters get identity.
+    """
+    rt = rig if isinstance(rig, RigTensors) else RigTensors(rig, pose.device, pose.dtype)
+    if pose.ndim != 2 or pose.shape[1] != rt.pose_dim:
+        raise ValueError(f"pose must be [B, {rt.pose_dim}], got {tuple(pose.shape)}")
+    B = pose.shape[0]
+    # All euler factors at once, then a short loop over parameters in listed order to
+    # multiply them into their joint (P is ~100; the heavy work is batched over B).
+    eul = axis_angle_to_matrix(rt.euler_axes.to(pose.dtype)[None] * pose[:, rt.euler_slots, None]) if len(rt.euler_slots) else None
+    local = [None] * rt.num_joints
+    k = 0
+    for j, kind, slot in rt.order:
+        if kind == "euler":
+            R = eul[:, k]
+            k += 1
+        else:
+            R = axis_angle_to_matrix(pose[:, slot : slot + 3])
+        local[j] = R if local[j] is None else local[j] @ R
+    eye = torch.eye(3, dtype=pose.dtype, device=pose.device).expand(B, 3, 3)
+    return torch.stack([eye if r is None else r for r in local], dim=1)
+
+
+def forward_kinematics(local_rot: Tensor, heads: Tensor, parents: list[int] | np.ndarray) -> Tensor:
+    """Per-joint skinning transforms ``posed_from_rest`` (root fixed at its rest head).
+
+    local_rot: [B, J, 3, 3]; heads: [J, 3] rest joint positions; parents: len J (-1 root)
+    -> [B, J, 4, 4]
+    """
+    B, J = local_rot.shape[:2]
+    parents = list(map(int, parents))
+    rots: list[Tensor] = [None] * J  # global rotation of each joint
+    pos: list[Tensor] = [None] * J  # posed head position
+    for j in range(J):
+        p = parents[j]
+        if p < 0:
+            rots[j] = local_rot[:, j]
+            pos[j] = heads[j].expand(B, 3)
+        else:
+            rots[j] = rots[p] @ local_rot[:, j]
+            pos[j] = pos[p] + (rots[p] @ (heads[j] - heads[p]))
+    R = torch.stack(rots, 1)  # [B, J, 3, 3]
+    P = torch.stack(pos, 1)  # [B, J, 3]
+    t = P - (R @ heads[None, :, :, None])[..., 0]  # posed = R x + t maps rest head -> posed head
+    T = torch.zeros(B, J, 4, 4, dtype=local_rot.dtype, device=local_rot.device)
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def root_transform(root_rotation: Tensor, root_translation: Tensor, root_head: Tensor) -> Tensor:
+    """``world_from_skeleton`` for the root motion. [B,3], [B,3], [3] -> [B, 4, 4]."""
+    R = axis_angle_to_matrix(root_rotation)
+    t = root_head + root_translation - (R @ root_head[:, None])[..., 0]
+    T = torch.zeros(R.shape[0], 4, 4, dtype=R.dtype, device=R.device)
+    T[:, :3, :3] = R
+    T[:, :3, 3] = t
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def skinning_transforms(rig: Rig | RigTensors, pose: Tensor, root_rotation: Tensor, root_translation: Tensor) -> Tensor:
+    """World ``posed_from_rest`` per joint incl. root motion. [B,P],[B,3],[B,3] -> [B, J, 4, 4]."""
+    rt = rig if isinstance(rig, RigTensors) else RigTensors(rig, pose.device, pose.dtype)
+    heads = rt.heads.to(pose.dtype)
+    T = forward_kinematics(pose_to_local_rotations(pose, rt), heads, rt.parents)
+    root = root_transform(root_rotation, root_translation, heads[0])
+    return root[:, None] @ T
+
+
+def pose_joints(rig: Rig | RigTensors, pose: Tensor, root_rotation: Tensor, root_translation: Tensor) -> Tensor:
+    """Posed world joint positions. -> [B, J, 3]"""
+    rt = rig if isinstance(rig, RigTensors) else RigTensors(rig, pose.device, pose.dtype)
+    T = skinning_transforms(rt, pose, root_rotation, root_translation)
+    h = rt.heads.to(pose.dtype)
+    return (T[..., :3, :3] @ h[None, :, :, None])[..., 0] + T[..., :3, 3]
+
+
+def blend_transforms(transforms: Tensor, skin_indices: Tensor, skin_weights: Tensor) -> Tensor:
+    """Per-point blended 4x4 (LBS). transforms [B,J,4,4], indices/weights [N,K] -> [B, N, 4, 4]."""
+    return torch.einsum("nk,bnkij->bnij", skin_weights.to(transforms.dtype), transforms[:, skin_indices])
+
+
+def lbs(points: Tensor, skin_indices: Tensor, skin_weights: Tensor, transforms: Tensor) -> Tensor:
+    """Linear blend skinning of rest points.
+
+    points: [N, 3] rest positions; skin_indices: [N, K] long; skin_weights: [N, K];
+    transforms: [B, J, 4, 4] posed_from_rest -> [B, N, 3] posed positions.
+    """
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be [N, 3], got {tuple(points.shape)}")
+    if skin_indices.shape != skin_weights.shape or skin_indices.shape[0] != points.shape[0]:
+        raise ValueError(
+            f"skin_indices/skin_weights must both be [N={points.shape[0]}, K], got {tuple(skin_indices.shape)} and {tuple(skin_weights.shape)}"
+        )
+    # Blend only the 3x4 affine rows: [B, N, 3, 4], avoids materialising [B, N, K, 4, 4] twice.
+    A = torch.einsum("nk,bnkij->bnij", skin_weights.to(transforms.dtype), transforms[:, skin_indices.long(), :3, :])
+    return (A[..., :3] @ points[None, :, :, None].to(A.dtype))[..., 0] + A[..., 3]
+
+
+def barycentric_interpolate(values: np.ndarray | Tensor, faces, face_idx, bary):
+    """Transfer per-vertex values to surface points. values [V, ...], faces [F,3], face_idx [N], bary [N,3] -> [N, ...]."""
+    corners = values[faces[face_idx]]  # [N, 3, ...]
+    shape = (bary.shape[0], 3) + (1,) * (corners.ndim - 2)
+    return (corners * bary.reshape(shape)).sum(1)
