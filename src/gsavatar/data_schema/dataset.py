@@ -1,0 +1,282 @@
+"""Derived datasets written by ``avatar-prep`` (format ``gsavatar-dataset`` v1).
+
+Layout::
+
+    DATASET/dataset.json            {"format", "version", "capture", "stages": {name: record}}
+    DATASET/<stage>/...             single-file stages (atlas, pca, points, masks)
+    DATASET/<stage>/manifest.json   sharded per-frame stages (posed meshes, UV textures)
+    DATASET/<stage>/shard-00003.npz + shard-00003.json  (sidecar: frames, sha256, arrays)
+
+Stage record: ``{"version", "config", "files": {relpath: sha256}, "seconds", "completed"}``.
+A shard's sidecar is written (atomically) only after its npz, so a shard is complete
+iff its sidecar exists and the npz matches the sidecar's checksum. The manifest is a
+merge of the sidecars; ranks of a distributed run each write their own shards and
+rank 0 merges. All paths in records and manifests are relative and must stay inside
+the dataset root.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gsavatar.data_schema.errors import SchemaError
+from gsavatar.utils.io import atomic_path, atomic_write_json, sha256_file
+
+DATASET_FORMAT = "gsavatar-dataset"
+DATASET_VERSION = 1
+SHARDS_FORMAT = "gsavatar-shards"
+SHARDS_VERSION = 1
+
+STAGE_VERSIONS: dict[str, int] = {
+    "pose-template": 1,
+    "uv-atlas": 1,
+    "project-uv": 1,
+    "fit-pca": 1,
+    "sample-points": 1,
+    "localize": 1,
+}
+"""Schema version of each stage's outputs; bump when a stage's file layout changes."""
+
+
+def safe_join(root: Path, rel: str, file: Path, fld: str) -> Path:
+    """``root / rel`` but refuse absolute paths and ``..`` escapes (manifests are untrusted)."""
+    p = Path(rel)
+    if p.is_absolute() or ".." in p.parts:
+        raise SchemaError(file, fld, f"path {rel!r} escapes the dataset root")
+    full = (root / p).resolve()
+    if not full.is_relative_to(root.resolve()):
+        raise SchemaError(file, fld, f"path {rel!r} escapes the dataset root")
+    return full
+
+
+# --------------------------------------------------------------------------- dataset.json
+def read_dataset_json(root: Path) -> dict:
+    path = root / "dataset.json"
+    if not path.exists():
+        return {"format": DATASET_FORMAT, "version": DATASET_VERSION, "capture": None, "stages": {}}
+    try:
+        obj = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise SchemaError(path, f"line {e.lineno}", f"invalid JSON: {e.msg}") from None
+    if obj.get("format") != DATASET_FORMAT:
+        raise SchemaError(path, "format", f"expected {DATASET_FORMAT!r}, got {obj.get('format')!r}")
+    if obj.get("version") != DATASET_VERSION:
+        raise SchemaError(path, "version", f"unsupported version {obj.get('version')!r}")
+    return obj
+
+
+def record_stage(root: Path, stage: str, config: dict, files: list[Path], seconds: float, capture: Path | None = None) -> None:
+    """Mark ``stage`` complete in dataset.json with checksums of its files."""
+    obj = read_dataset_json(root)
+    if capture is not None:
+        obj["capture"] = str(Path(capture).resolve())
+    obj["stages"][stage] = {
+        "version": STAGE_VERSIONS[stage],
+        "config": config,
+        "files": {str(Path(f).resolve().relative_to(root.resolve())): sha256_file(f) for f in files},
+        "seconds": round(float(seconds), 3),
+        "completed": time.strftime("%Y-%m-%dT%H:%M:%S"),
+    }
+    atomic_write_json(root / "dataset.json", obj)
+
+
+def stage_complete(root: Path, stage: str, config: dict | None = None, check_files: bool = True) -> bool:
+    """True if ``stage`` is recorded with the current version (and config), and its files verify."""
+    try:
+        rec = read_dataset_json(root)["stages"].get(stage)
+    except SchemaError:
+        return False
+    if rec is None or rec.get("version") != STAGE_VERSIONS[stage]:
+        return False
+    if config is not None and rec.get("config") != json.loads(json.dumps(config)):
+        return False
+    if check_files:
+        for rel, digest in rec["files"].items():
+            p = root / rel
+            if not p.exists() or sha256_file(p) != digest:
+                return False
+    return True
+
+
+def stage_path(root: Path, stage: str, name: str) -> Path:
+    """Path of a stage output file; raises SchemaError if the stage has not been run."""
+    obj = read_dataset_json(root)
+    if stage not in obj["stages"]:
+        raise SchemaError(root / "dataset.json", f"stages.{stage}", f"stage not run yet: run `avatar-prep {stage}` first")
+    return root / stage.replace("-", "_") / name
+
+
+# --------------------------------------------------------------------------- shards
+@dataclass
+class ShardSpec:
+    index: int
+    frames: list[int]
+
+
+def plan_shards(frames: list[int], shard_size: int) -> list[ShardSpec]:
+    if shard_size <= 0:
+        raise ValueError(f"shard_size must be > 0, got {shard_size}")
+    return [ShardSpec(i, frames[s : s + shard_size]) for i, s in enumerate(range(0, len(frames), shard_size))]
+
+
+class ShardStore:
+    """Per-frame arrays of one stage, written as atomic, checksummed npz shards."""
+
+    def __init__(self, directory: Path, stage: str) -> None:
+        self.dir = Path(directory)
+        self.stage = stage
+
+    def npz(self, index: int) -> Path:
+        return self.dir / f"shard-{index:05d}.npz"
+
+    def sidecar(self, index: int) -> Path:
+        return self.dir / f"shard-{index:05d}.json"
+
+    def is_complete(self, spec: ShardSpec, config_hash: str) -> bool:
+        sc = self.sidecar(spec.index)
+        if not sc.exists() or not self.npz(spec.index).exists():
+            return False
+        try:
+            meta = json.loads(sc.read_text())
+        except json.JSONDecodeError:
+            return False
+        return (
+            meta.get("frames") == spec.frames
+            and meta.get("config_hash") == config_hash
+            and meta.get("schema_version") == SHARDS_VERSION
+            and sha256_file(self.npz(spec.index)) == meta.get("sha256")
+        )
+
+    def write(self, spec: ShardSpec, arrays: dict[str, np.ndarray], config_hash: str) -> None:
+        """Write shard npz then its sidecar, both atomically (sidecar last = commit point)."""
+        for k, a in arrays.items():
+            if a.shape[0] != len(spec.frames):
+                raise ValueError(f"shard {spec.index}: array {k!r} has {a.shape[0]} rows for {len(spec.frames)} frames")
+        self.dir.mkdir(parents=True, exist_ok=True)
+        npz = self.npz(spec.index)
+        with atomic_path(npz, suffix=".npz") as tmp:
+            np.savez(tmp, frames=np.asarray(spec.frames, dtype=np.int64), **arrays)
+        atomic_write_json(self.sidecar(spec.index), {
+            "index": spec.index,
+            "frames": spec.frames,
+            "file": npz.name,
+            "sha256": sha256_file(npz),
+            "config_hash": config_hash,
+            "schema_version": SHARDS_VERSION,
+            "arrays": {k: [list(a.shape[1:]), str(a.dtype)] for k, a in arrays.items()},
+        })
+
+    def merge_manifest(self, specs: list[ShardSpec], extra: dict | None = None) -> Path:
+        """Merge sidecars into manifest.json; raises if any planned shard is missing."""
+        shards = []
+        for s in specs:
+            sc = self.sidecar(s.index)
+            if not sc.exists():
+                raise SchemaError(sc, "", f"shard {s.index} of stage {self.stage!r} is missing; re-run the stage")
+            shards.append(json.loads(sc.read_text()))
+        path = self.dir / "manifest.json"
+        atomic_write_json(path, {
+            "format": SHARDS_FORMAT,
+            "schema_version": SHARDS_VERSION,
+            "stage": self.stage,
+            "num_frames": sum(len(s.frames) for s in specs),
+            "shards": shards,
+            **(extra or {}),
+        })
+        return path
+
+
+def read_manifest(directory: Path) -> dict:
+    path = Path(directory) / "manifest.json"
+    if not path.exists():
+        raise SchemaError(path, "", "manifest not found; run the stage first")
+    try:
+        m = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise SchemaError(path, f"line {e.lineno}", f"invalid JSON: {e.msg}") from None
+    if m.get("format") != SHARDS_FORMAT:
+        raise SchemaError(path, "format", f"expected {SHARDS_FORMAT!r}, got {m.get('format')!r}")
+    if m.get("schema_version") != SHARDS_VERSION:
+        raise SchemaError(path, "schema_version", f"unsupported {m.get('schema_version')!r}")
+    return m
+
+
+class ShardReader:
+    """Random access to per-frame arrays of a sharded stage (loads one shard at a time)."""
+
+    def __init__(self, directory: Path, verify: bool = False) -> None:
+        self.dir = Path(directory)
+        self.manifest = read_manifest(self.dir)
+        self.where: dict[int, tuple[int, int]] = {}
+        mpath = self.dir / "manifest.json"
+        for si, s in enumerate(self.manifest["shards"]):
+            p = safe_join(self.dir, s["file"], mpath, f"shards[{si}].file")
+            if verify and sha256_file(p) != s["sha256"]:
+                raise SchemaError(p, "sha256", "checksum mismatch: shard is corrupt; re-run the stage")
+            for k, f in enumerate(s["frames"]):
+                self.where[int(f)] = (si, k)
+        self._cache: tuple[int, dict[str, np.ndarray]] | None = None
+
+    @property
+    def frames(self) -> list[int]:
+        return sorted(self.where)
+
+    def get(self, frame: int) -> dict[str, np.ndarray]:
+        if frame not in self.where:
+            raise KeyError(f"frame {frame} not in {self.dir}")
+        si, k = self.where[frame]
+        if self._cache is None or self._cache[0] != si:
+            s = self.manifest["shards"][si]
+            p = safe_join(self.dir, s["file"], self.dir / "manifest.json", f"shards[{si}].file")
+            with np.load(p) as z:
+                self._cache = (si, {n: z[n] for n in z.files})
+        return {n: a[k] for n, a in self._cache[1].items() if n != "frames"}
+
+
+# --------------------------------------------------------------------------- verify
+def verify_dataset(root: str | Path) -> list[str]:
+    """Check every recorded file and shard checksum. Returns a list of problems (empty = ok)."""
+    root = Path(root)
+    problems: list[str] = []
+    djson = root / "dataset.json"
+    try:
+        obj = read_dataset_json(root)
+    except SchemaError as e:
+        return [str(e)]
+    if not djson.exists():
+        return [f"{djson}: not found (not a gsavatar dataset)"]
+    for stage, rec in obj["stages"].items():
+        if rec.get("version") != STAGE_VERSIONS.get(stage):
+            problems.append(f"{djson}: stages.{stage}.version {rec.get('version')} != {STAGE_VERSIONS.get(stage)}")
+        for rel, digest in rec.get("files", {}).items():
+            try:
+                p = safe_join(root, rel, djson, f"stages.{stage}.files")
+            except SchemaError as e:
+                problems.append(str(e))
+                continue
+            if not p.exists():
+                problems.append(f"{p}: missing (recorded by stage {stage})")
+            elif sha256_file(p) != digest:
+                problems.append(f"{p}: checksum mismatch (recorded by stage {stage})")
+    for mpath in sorted(root.glob("*/manifest.json")):
+        try:
+            m = read_manifest(mpath.parent)
+        except SchemaError as e:
+            problems.append(str(e))
+            continue
+        for si, s in enumerate(m["shards"]):
+            try:
+                p = safe_join(mpath.parent, s["file"], mpath, f"shards[{si}].file")
+            except SchemaError as e:
+                problems.append(str(e))
+                continue
+            if not p.exists():
+                problems.append(f"{p}: missing shard")
+            elif sha256_file(p) != s["sha256"]:
+                problems.append(f"{p}: checksum mismatch")
+    return problems
