@@ -1,0 +1,8 @@
+#!/usr/bin/env bash
+# Set up (idempotent) and run the test suite (slow cases are opt-in: pass -m slow).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup.sh
+export ANNY_CACHE_DIR=${ANNY_CACHE_DIR:-$PWD/.cache/anny}
+export VTK_DEFAULT_OPENGL_WINDOW=${VTK_DEFAULT_OPENGL_WINDOW:-vtkEGLRenderWindow}
+exec .venv/bin/python -m pytest -q "$@"

@@ -1,0 +1,1 @@
+"""``avatar-prep`` stages: posing, UV atlas, UV texel projection, pose PCA, point hierarchy, localization."""
