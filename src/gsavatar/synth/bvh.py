@@ -24,6 +24,8 @@ Format (what is accepted)::
 
 - Any joint may have any subset of the six channels in any order (position channels
   included, not only on the root); a joint may have zero channels.
+- Rows beyond the declared ``Frames:`` count are ignored with a warning (some exporters
+  are off by one); fewer rows than declared is an error.
 - Several ``ROOT`` blocks are allowed (each starts a new tree, parent -1).
 - Angles are degrees. Each joint's local transform is
   ``T(offset + (Xposition, Yposition, Zposition)) @ R_c1 @ R_c2 @ R_c3`` with the
@@ -37,6 +39,7 @@ non-numeric or NaN/Inf values, bad channel names/counts, unbalanced braces.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -271,7 +274,11 @@ def read_bvh(path: str | Path) -> BvhMotion:
         if not s:
             continue
         if f >= F:
-            raise SchemaError(path, f"line {ln + 1}", f"more frame rows than 'Frames: {F}' declares")
+            # Real exporters are sometimes off by one (e.g. assimp's Boxing_Toes.bvh has
+            # Frames: 3069 and 3070 rows): keep the declared frames, say so.
+            extra = sum(1 for l in lines[ln:] if l.strip())
+            warnings.warn(f"{path}: line {ln + 1}: {extra} frame row(s) beyond 'Frames: {F}' ignored", stacklevel=2)
+            break
         if len(s) != C:
             raise SchemaError(path, f"line {ln + 1}", f"frame {f} has {len(s)} values, the hierarchy declares {C} channels")
         try:

@@ -1,0 +1,1 @@
+"""Synthetic captures from a real body model (anny) and real mocap (CMU BVH)."""
