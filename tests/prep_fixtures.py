@@ -73,8 +73,8 @@ def arm_template(n_theta: int = 24, n_x: int = 61, blend: float = 0.05, k: int =
             c, d = a + n_theta, b + n_theta
             ua, ub = i * (n_theta + 1) + t, i * (n_theta + 1) + t + 1
             uc, ud = ua + n_theta + 1, ub + n_theta + 1
-            faces += [[a, c, b], [b, c, d]]
-            fuv += [[ua, uc, ub], [ub, uc, ud]]
+            faces += [[a, b, c], [b, d, c]]  # outward-facing
+            fuv += [[ua, ub, uc], [ub, ud, uc]]
     # skin weights along x
     bones = ["Spine", "LeftArm", "LeftForeArm", "LeftHand", "LeftFinger"]
     starts = np.array([JOINT_X[b] for b in bones])

@@ -96,7 +96,9 @@ def test_rest_pose_is_identity():
 
 
 def test_rotation_round_trip_and_gradients_at_zero():
-    aa = torch.randn(200, 3, dtype=torch.float64) * 0.9
+    g = torch.Generator().manual_seed(0)
+    aa = torch.randn(200, 3, dtype=torch.float64, generator=g) * 0.9
+    aa = aa * (aa.norm(dim=-1, keepdim=True) < 3.0)  # axis-angle is unique only below pi
     assert torch.allclose(matrix_to_axis_angle(axis_angle_to_matrix(aa)), aa, atol=1e-9)
     z = torch.zeros(3, 3, dtype=torch.float64, requires_grad=True)
     axis_angle_to_matrix(z).sum().backward()
