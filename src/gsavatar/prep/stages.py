@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from gsavatar.data_schema import load_capture
+from gsavatar.data_schema.dataset import stage_complete
 from gsavatar.prep.common import StageArgs, open_capture, run_frame_stage, run_single_file_stage
 
 
@@ -39,3 +40,167 @@ def synth(cmd) -> None:
     cfg = preset_config(cmd.preset, seed=cmd.seed)
     make_capture(cfg, Path(cmd.out), cmd.anny_cache or default_anny_cache())
     print(f"capture written to {cmd.out}")
+
+
+# --------------------------------------------------------------------------- uv-atlas
+def atlas_config(tex_size: int, gutter_px: float) -> dict:
+    return {"tex_size": int(tex_size), "gutter_px": float(gutter_px)}
+
+
+def uv_atlas(args: StageArgs, tex_size: int, gutter_px: float = 1.0) -> bool:
+    from gsavatar.prep.uv_atlas import build_texel_map, ensure_uvs
+    from gsavatar.utils.io import atomic_save_npz
+
+    cap = open_capture(args)
+    root = Path(args.out)
+
+    def produce() -> list[Path]:
+        t = ensure_uvs(cap.template, cache_dir=root / "uv_atlas" / "xatlas_cache")
+        tm = build_texel_map(t, size=tex_size, gutter=gutter_px)
+        path = root / "uv_atlas" / "atlas.npz"
+        atomic_save_npz(path, face=tm.face, bary=tm.bary, interior=tm.interior, size=np.int64(tm.size),
+                        uvs=t.uvs, face_uvs=t.face_uvs)
+        print(f"[uv-atlas] {tex_size}x{tex_size}: {tm.valid.mean():.1%} of texels on the surface "
+              f"({'template UVs' if cap.template.uvs is not None else 'xatlas unwrap'})")
+        return [path]
+
+    return run_single_file_stage("uv-atlas", args, atlas_config(tex_size, gutter_px), produce)
+
+
+def load_atlas(root: Path):
+    """The texel map and UVs written by ``uv-atlas``."""
+    from gsavatar.data_schema.dataset import stage_path
+    from gsavatar.prep.uv_atlas import TexelMap
+
+    with np.load(stage_path(Path(root), "uv-atlas", "atlas.npz")) as z:
+        tm = TexelMap(z["face"], z["bary"], int(z["size"]), z["interior"])
+        return tm, z["uvs"], z["face_uvs"]
+
+
+# --------------------------------------------------------------------------- project-uv
+def _project_shard(capture_dir: str, dataset: str, cfg_json: dict, cams: list[str], frames: list[int]) -> dict[str, np.ndarray]:
+    from gsavatar.data_schema.dataset import ShardReader
+    from gsavatar.prep.common import stage_dir
+    from gsavatar.prep.project_uv import ProjectConfig, UVProjector, iter_frame_views
+
+    cap = load_capture(capture_dir)
+    tm, _, _ = load_atlas(Path(dataset))
+    cfg = ProjectConfig(**{**cfg_json, "band": tuple(cfg_json["band"])})
+    proj = UVProjector(cap.template.faces, tm, cfg, cap.template.face_uv_mask)
+    posed = ShardReader(stage_dir(Path(dataset), "pose-template"))
+    tex, cnt, seen = [], [], []
+    for f in frames:
+        out = proj.project(posed.get(f)["vertices"], iter_frame_views(cap, f, cams), frame=f)
+        tex.append(out.texture.astype(np.float16))
+        cnt.append(out.count)
+        seen.append(out.seen)
+    return {"texture": np.stack(tex), "count": np.stack(cnt), "seen": np.stack(seen)}
+
+
+def project_uv(args: StageArgs, cfg, cameras: str = "train") -> bool:
+    """``cameras``: ``train`` (default: held-out views never leak into textures) or ``all``."""
+    from gsavatar.prep.common import stage_config
+
+    cap = open_capture(args)
+    pose_template(args)
+    uv_atlas(args, cfg.tex_size, cfg.gutter_px)
+    cams = sorted(cap.splits["train"].cameras) if cameras == "train" else sorted(cap.cameras)
+    config = {**stage_config(cfg), "cameras": cams}
+    cfg_json = stage_config(cfg)
+    return run_frame_stage("project-uv", args, config, list(range(cap.num_frames)),
+                           functools.partial(_project_shard, str(args.capture), str(args.out), cfg_json, cams))
+
+
+# --------------------------------------------------------------------------- fit-pca
+def fit_pca(args: StageArgs, n_components: int = 5, global_components: int = 20, clamp_sigma: float = 2.0) -> bool:
+    from gsavatar.prep.pca import fit_pose_pca
+
+    cap = open_capture(args)
+    root = Path(args.out)
+    config = {"n_components": n_components, "global_components": global_components, "clamp_sigma": clamp_sigma,
+              "train_frames": len(cap.splits["train"].frames)}
+
+    def produce() -> list[Path]:
+        poses = cap.motion.pose[cap.splits["train"].frames]
+        out = []
+        for mode, k in (("local", n_components), ("global", global_components)):
+            p = fit_pose_pca(poses, cap.rig, n_components=k, mode=mode, clamp_sigma=clamp_sigma)
+            path = root / "fit_pca" / f"{mode}.npz"
+            p.save(path)
+            out.append(path)
+            if mode == "local":
+                print(f"[fit-pca] local components per group: {p.components_per_group()}")
+        return out
+
+    return run_single_file_stage("fit-pca", args, config, produce)
+
+
+# --------------------------------------------------------------------------- sample-points
+def auto_point_counts(cap) -> dict[str, int]:
+    """Point counts a scene needs: Gaussians scale with the foreground pixels a view can resolve.
+
+    Roughly 4 Gaussians per foreground pixel of the largest view (a full-body view sees about
+    1/3 of its image), capped at the paper's 300 / 10k / 200k.
+    """
+    px = max(c.width * c.height for c in cap.cameras.values())
+    n_g = int(np.clip(4 * px / 3, 5_000, 200_000))
+    n_c = int(np.clip(n_g // 20, 500, 10_000))
+    n_a = int(np.clip(n_c // 33, 32, 300))
+    return {"anchors": n_a, "control": n_c, "gaussians": n_g}
+
+
+def sample_points(args: StageArgs, anchors: int = 0, control: int = 0, gaussians: int = 0, seed: int = 0) -> bool:
+    from gsavatar.prep.sample_points import build_hierarchy
+
+    cap = open_capture(args)
+    root = Path(args.out)
+    auto = auto_point_counts(cap)
+    counts = {"anchors": anchors or auto["anchors"], "control": control or auto["control"],
+              "gaussians": gaussians or auto["gaussians"]}
+    config = {**counts, "seed": seed}
+
+    def produce() -> list[Path]:
+        chosen = ", ".join(f"{k} {v}" + (" (auto)" if not {"anchors": anchors, "control": control, "gaussians": gaussians}[k] else "")
+                           for k, v in counts.items())
+        print(f"[sample-points] {chosen}")
+        h = build_hierarchy(cap.template, counts["anchors"], counts["control"], counts["gaussians"], seed=seed)
+        path = root / "sample_points" / "hierarchy.npz"
+        h.save(path)
+        return [path]
+
+    return run_single_file_stage("sample-points", args, config, produce)
+
+
+# --------------------------------------------------------------------------- localize
+def localize(args: StageArgs, ancestor_levels: int = 1, k_neighbors: int = 6, figure_param: str = "Neck.ry",
+             figures: bool = True) -> bool:
+    from gsavatar.data_schema.dataset import stage_path
+    from gsavatar.prep.localize import build_localization
+    from gsavatar.prep.sample_points import Hierarchy
+
+    cap = open_capture(args)
+    root = Path(args.out)
+    if not stage_complete(root, "sample-points"):  # any recorded counts are fine; only run it if missing
+        sample_points(args)
+    config = {"ancestor_levels": ancestor_levels, "k_neighbors": k_neighbors, "figure_param": figure_param, "figures": figures}
+
+    def produce() -> list[Path]:
+        h = Hierarchy.load(stage_path(root, "sample-points", "hierarchy.npz"))
+        masks = build_localization(h, cap.rig, cap.template.face_uv_mask, ancestor_levels=ancestor_levels,
+                                   k_neighbors=k_neighbors, template=cap.template)
+        path = root / "localize" / "masks.npz"
+        masks.save(path)
+        files = [path]
+        active = masks.pose.mean()
+        print(f"[localize] {masks.pose.shape[0]} anchors x {masks.pose.shape[1]} pose slots, {active:.1%} active; "
+              f"{int(masks.face.sum())} face anchors")
+        if figures:
+            from gsavatar.prep.figures import render_hierarchy_figure, render_influence_figure
+
+            param = figure_param if figure_param in [p.name for p in cap.rig.params] else cap.rig.params[0].name
+            files.append(Path(render_hierarchy_figure(cap.template, h, root / "localize" / "hierarchy.png")))
+            files.append(Path(render_influence_figure(cap.template, h, masks, cap.rig,
+                                                      root / "localize" / f"influence_{param}.png", param=param)))
+        return files
+
+    return run_single_file_stage("localize", args, config, produce)

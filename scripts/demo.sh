@@ -1,0 +1,18 @@
+#!/usr/bin/env bash
+# Set up (idempotent), then the main job on the embedded default scene:
+# a synthetic capture (real anny body + real CMU mocap) -> every avatar-prep stage -> verify.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup.sh
+export ANNY_CACHE_DIR=${ANNY_CACHE_DIR:-$PWD/.cache/anny}
+export VTK_DEFAULT_OPENGL_WINDOW=${VTK_DEFAULT_OPENGL_WINDOW:-vtkEGLRenderWindow}
+PRESET=${PRESET:-small}
+OUT=${OUT:-$PWD/out/demo}
+.venv/bin/avatar-prep synth --out "$OUT/capture" --preset "$PRESET"
+.venv/bin/avatar-prep all --capture "$OUT/capture" --out "$OUT/dataset"
+.venv/bin/avatar-prep verify "$OUT/dataset"
+.venv/bin/python -m gsavatar.prep.report "$OUT/dataset" --out "$OUT/report"
+echo
+echo "UV textures (sharded, float16):   $OUT/dataset/project_uv/shard-*.npz  (manifest.json lists frames)"
+echo "UV texture previews (PNG):        $OUT/report/"
+echo "Figures (hierarchy, influence):   $OUT/dataset/localize/"
