@@ -148,6 +148,8 @@ class Synth:
     """Random seed (same seed -> identical capture)."""
     anny_cache: Path | None = None
     """Cache of the anny body build (default: $ANNY_CACHE_DIR or ~/.cache/gsavatar/anny)."""
+    overwrite: bool = False
+    """Replace an existing capture in ``out`` (otherwise a valid one is reused)."""
 
     def run(self) -> None:
         stages.synth(self)

@@ -35,10 +35,16 @@ def pose_template(args: StageArgs) -> bool:
 # --------------------------------------------------------------------------- synth
 def synth(cmd) -> None:
     from gsavatar.synth.make import make_capture
-    from gsavatar.synth.presets import preset_config
+    from gsavatar.synth.presets import preset
 
-    cfg = preset_config(cmd.preset, seed=cmd.seed)
-    make_capture(cfg, Path(cmd.out), cmd.anny_cache or default_anny_cache())
+    cfg = preset(cmd.preset, seed=cmd.seed)
+    if (Path(cmd.out) / "capture.json").exists() and not cmd.overwrite:
+        from gsavatar.data_schema import load_capture
+
+        load_capture(cmd.out)  # validates; an existing complete capture is reused, not rebuilt
+        print(f"{cmd.out} already holds a valid capture; reusing it (--overwrite to rebuild)")
+        return
+    make_capture(cfg, Path(cmd.out), cmd.anny_cache or default_anny_cache(), overwrite=cmd.overwrite)
     print(f"capture written to {cmd.out}")
 
 
