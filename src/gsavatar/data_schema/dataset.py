@@ -34,7 +34,7 @@ SHARDS_VERSION = 1
 
 STAGE_VERSIONS: dict[str, int] = {
     "pose-template": 1,
-    "uv-atlas": 1,
+    "uv-atlas": 2,
     "project-uv": 1,
     "fit-pca": 1,
     "sample-points": 1,

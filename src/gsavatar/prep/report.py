@@ -61,12 +61,11 @@ def build_report(dataset: Path, out: Path, frames: list[int] | None = None, comp
     frames = frames or reader.frames
     rows = []
     cap = load_capture(cap_root, check_files=True)
-    face = None
-    if cap.template.face_uv_mask is not None:
-        from gsavatar.prep.project_uv import resize_face_mask
+    from gsavatar.prep.project_uv import resize_face_mask
+    from gsavatar.prep.stages import load_atlas, load_atlas_face_mask
 
-        face = resize_face_mask(cap.template.face_uv_mask, int(cfg["tex_size"]))
-    from gsavatar.prep.stages import load_atlas
+    fmask = load_atlas_face_mask(dataset)
+    face = resize_face_mask(fmask, int(cfg["tex_size"])) if fmask is not None else None
 
     tm, _, _ = load_atlas(dataset)
     surface = tm.valid & (~face if face is not None else True)
@@ -97,9 +96,10 @@ def build_report(dataset: Path, out: Path, frames: list[int] | None = None, comp
 def _compare_mean(cap, dataset: Path, cfg: dict, frames: list[int], surface: np.ndarray) -> dict:
     """Re-project ``frames`` with both fusion rules; PSNR on texels seen by >= 2 views."""
     from gsavatar.prep.project_uv import ProjectConfig, UVProjector, load_frame_views
-    from gsavatar.prep.stages import load_atlas
+    from gsavatar.prep.stages import load_atlas, load_atlas_face_mask
 
     tm, _, _ = load_atlas(dataset)
+    fmask = load_atlas_face_mask(dataset)
     posed = ShardReader(stage_dir(dataset, "pose-template"))
     fields = {k: v for k, v in cfg.items() if k in ProjectConfig.__dataclass_fields__}
     fields["band"] = tuple(fields["band"])
@@ -110,7 +110,7 @@ def _compare_mean(cap, dataset: Path, cfg: dict, frames: list[int], surface: np.
         if gt is None:
             continue
         for fusion in out:
-            proj = UVProjector(cap.template.faces, tm, ProjectConfig(**{**fields, "fusion": fusion}), cap.template.face_uv_mask)
+            proj = UVProjector(cap.template.faces, tm, ProjectConfig(**{**fields, "fusion": fusion}), fmask)
             r = proj.project(posed.get(f)["vertices"], views, frame=f)
             out[fusion].append(texture_psnr(r.texture, gt, surface & (r.seen >= 2)))
     return {k: float(np.mean(v)) if v else float("nan") for k, v in out.items()}

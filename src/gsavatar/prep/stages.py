@@ -64,8 +64,10 @@ def uv_atlas(args: StageArgs, tex_size: int, gutter_px: float = 1.0) -> bool:
         t = ensure_uvs(cap.template, cache_dir=root / "uv_atlas" / "xatlas_cache")
         tm = build_texel_map(t, size=tex_size, gutter=gutter_px)
         path = root / "uv_atlas" / "atlas.npz"
+        # face_uv_mask belongs to the template's own UV layout; after an xatlas unwrap there is none.
+        face_mask = t.face_uv_mask if t.face_uv_mask is not None else np.zeros((1, 1), bool)
         atomic_save_npz(path, face=tm.face, bary=tm.bary, interior=tm.interior, size=np.int64(tm.size),
-                        uvs=t.uvs, face_uvs=t.face_uvs)
+                        uvs=t.uvs, face_uvs=t.face_uvs, face_uv_mask=face_mask)
         print(f"[uv-atlas] {tex_size}x{tex_size}: {tm.valid.mean():.1%} of texels on the surface "
               f"({'template UVs' if cap.template.uvs is not None else 'xatlas unwrap'})")
         return [path]
@@ -83,6 +85,15 @@ def load_atlas(root: Path):
         return tm, z["uvs"], z["face_uvs"]
 
 
+def load_atlas_face_mask(root: Path) -> np.ndarray | None:
+    """Face region in the atlas' UV layout (None after an xatlas unwrap or without a mask).  # [h, w] bool"""
+    from gsavatar.data_schema.dataset import stage_path
+
+    with np.load(stage_path(Path(root), "uv-atlas", "atlas.npz")) as z:
+        m = z["face_uv_mask"]
+    return m if m.any() else None
+
+
 # --------------------------------------------------------------------------- project-uv
 def _project_shard(capture_dir: str, dataset: str, cfg_json: dict, cams: list[str], frames: list[int]) -> dict[str, np.ndarray]:
     from gsavatar.data_schema.dataset import ShardReader
@@ -92,7 +103,7 @@ def _project_shard(capture_dir: str, dataset: str, cfg_json: dict, cams: list[st
     cap = load_capture(capture_dir)
     tm, _, _ = load_atlas(Path(dataset))
     cfg = ProjectConfig(**{**cfg_json, "band": tuple(cfg_json["band"])})
-    proj = UVProjector(cap.template.faces, tm, cfg, cap.template.face_uv_mask)
+    proj = UVProjector(cap.template.faces, tm, cfg, load_atlas_face_mask(Path(dataset)))
     posed = ShardReader(stage_dir(Path(dataset), "pose-template"))
     tex, cnt, seen = [], [], []
     for f in frames:

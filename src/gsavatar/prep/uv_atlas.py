@@ -7,8 +7,9 @@ UP; a ``H x W`` texture is stored top row first, so texel ``(y, x)`` has its cen
 centres sit on the integer grid.
 
 :func:`build_texel_map` rasterises every triangle's UV bounding box with numpy (the
-candidate texels of many triangles are enumerated at once, in bounded chunks), so a
-30k-triangle atlas at 1024^2 takes well under a second or two on one core.
+candidate texels of many triangles are enumerated at once, in bounded chunks): the
+27k-triangle synthetic-body atlas at 1024^2 takes ~0.8 s, a 30k-triangle atlas covering
+the whole square ~2 s (one core).
 """
 
 from __future__ import annotations
@@ -194,13 +195,23 @@ def _closest_on_edges(P, x, y):
     return best_d, best_b
 
 
-def _reduce_best(tex, score, face):
-    """Per texel keep the candidate with the highest score (ties: lowest face id). -> (tex, idx into inputs)."""
-    order = np.lexsort((face, -score, tex))
+def _reduce_best(tex, score, face, n_texels):
+    """Per texel keep the candidate with the highest score (ties: lowest face id). -> (tex, idx into inputs).
+
+    Texels with a single candidate (the vast majority) skip the sort.
+    """
+    cnt = np.bincount(tex, minlength=n_texels)
+    multi = cnt[tex] > 1
+    single = np.flatnonzero(~multi)
+    if single.size == tex.size:
+        return tex, single
+    m = np.flatnonzero(multi)
+    order = m[np.lexsort((face[m], -score[m], tex[m]))]
     tex_sorted = tex[order]
     first = np.ones(tex_sorted.size, dtype=bool)
     first[1:] = tex_sorted[1:] != tex_sorted[:-1]
-    return tex_sorted[first], order[first]
+    idx = np.concatenate([single, order[first]])
+    return tex[idx], idx
 
 
 def build_texel_map(vertices_or_template, corner_uvs: np.ndarray | None = None, size: int = 512, gutter: float = 1.0) -> TexelMap:
@@ -246,7 +257,7 @@ def build_texel_map(vertices_or_template, corner_uvs: np.ndarray | None = None, 
             continue
         t, b, score = t[inside], b[inside], score[inside]
         tex = y[inside] * size + x[inside]
-        utex, k = _reduce_best(tex, score, t)
+        utex, k = _reduce_best(tex, score, t, size * size)
         # merge with earlier chunks: replace where strictly better, or equal score and lower face id
         cur_s, cur_f = best_score[utex], face[utex]
         new_s, new_f = score[k], t[k]
@@ -277,7 +288,7 @@ def build_texel_map(vertices_or_template, corner_uvs: np.ndarray | None = None, 
             if not near.any():
                 continue
             t, tex, d, b = t[near], tex[near], d[near], b[near]
-            utex, k = _reduce_best(tex, -d, t)
+            utex, k = _reduce_best(tex, -d, t, size * size)
             cur_d, cur_f = best_d[utex], face[utex]
             new_d, new_f = d[k], t[k]
             take = (new_d < cur_d) | ((new_d == cur_d) & ((cur_f < 0) | (new_f < cur_f)))

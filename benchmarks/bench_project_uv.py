@@ -1,0 +1,238 @@
+"""Benchmark the per-frame UV texel projection (``gsavatar.prep.project_uv``).
+
+Not a test. For each texture size it reports seconds per frame of
+:meth:`UVProjector.project` (images already decoded), the I/O floor (decoding that
+frame's images + masks with ``utils.io``), texels/s, and the error of the fused
+texture against the ground-truth texture (PSNR on texels seen by >= 2 views;
+``median_band`` and, for comparison, ``mean`` fusion). Prints a markdown table.
+
+Inputs:
+
+- ``--capture DIR``: a synthetic capture (``gsavatar.synth``) with
+  ``gt/textures/{frame:08d}.png``; the template must have UVs. Posed vertices come
+  from LBS of ``motion.npz`` (:func:`gsavatar.prep.pose_template.pose_vertices`).
+  Note: synthetic images are albedo x shading while ``gt/textures`` is the unshaded
+  albedo, so the PSNR there is bounded by the shading, not by the projection.
+- no ``--capture``: a built-in scene: a body-like pair of ellipsoids (xatlas-unwrapped,
+  ~25k triangles, self-occluding) with an analytic texture of the rest position,
+  rendered (exact, unshaded) into ``--views`` 8-bit PNG views on a ring, written to a
+  temp capture-style folder so the I/O floor is real PNG decoding.
+
+    PYTHONPATH=src .venv/bin/python benchmarks/bench_project_uv.py
+    PYTHONPATH=src .venv/bin/python benchmarks/bench_project_uv.py --capture /data/synth_a --frames 0 10
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from gsavatar.data_schema.capture import Camera, Capture
+from gsavatar.geometry.camera import look_at, pixel_rays
+from gsavatar.prep.project_uv import ProjectConfig, UVProjector, load_frame_views
+from gsavatar.prep.uv_atlas import build_texel_map, ensure_uvs
+
+
+# --------------------------------------------------------------------------- built-in scene
+def _icosphere(subdiv: int) -> tuple[np.ndarray, np.ndarray]:
+    t = (1 + 5**0.5) / 2
+    V = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t], [0, 1, -t],
+         [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]
+    F = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2], [10, 7, 6],
+         [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10],
+         [8, 6, 7], [9, 8, 1]]
+    V = [np.array(v, float) / np.linalg.norm(v) for v in V]
+    for _ in range(subdiv):
+        cache: dict = {}
+        nf = []
+
+        def mid(a, b):
+            k = (min(a, b), max(a, b))
+            if k not in cache:
+                m = V[a] + V[b]
+                V.append(m / np.linalg.norm(m))
+                cache[k] = len(V) - 1
+            return cache[k]
+
+        for a, b, c in F:
+            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
+            nf += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
+        F = nf
+    return np.array(V), np.array(F, np.int64)
+
+
+def _albedo(p: np.ndarray) -> np.ndarray:
+    """Analytic texture of the rest position p [..., 3] (metres) -> RGB in [0.15, 0.85]."""
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    r = 0.5 + 0.3 * np.sin(2 * np.pi * (3.0 * y + 1.5 * x))
+    g = 0.5 + 0.25 * np.cos(2 * np.pi * (4.0 * z + 2.0 * y))
+    b = 0.5 + 0.2 * np.sin(2 * np.pi * (2.5 * x - 2.0 * z + y))
+    return np.stack([r, g, b], -1)
+
+
+def builtin_scene(work: Path, n_views: int, img: int, frames: int, uv_cache: Path):
+    from gsavatar.data_schema.template import Template
+    from gsavatar.utils.io import write_image
+
+    import open3d as o3d
+
+    Vb, Fb = _icosphere(5)
+    Va, Fa = _icosphere(4)
+    body = Vb * np.array([0.22, 0.75, 0.14]) + np.array([0.0, 1.0, 0.0])
+    arm = Va * np.array([0.05, 0.33, 0.05]) + np.array([0.30, 1.05, 0.06])
+    V = np.concatenate([body, arm]).astype(np.float32)
+    F = np.concatenate([Fb, Fa + len(Vb)])
+    t = Template(V, F, np.zeros((len(V), 1), np.int32), np.ones((len(V), 1), np.float32))
+    t0 = time.perf_counter()
+    t = ensure_uvs(t, uv_cache)
+    print(f"xatlas unwrap (or cache hit) of {len(F)} triangles: {time.perf_counter() - t0:.2f} s")
+    cams = {}
+    for i in range(n_views):
+        a = 2 * np.pi * i / n_views
+        eye = np.array([2.6 * np.sin(a), 1.0 + (0.5 if i % 2 else -0.2), 2.6 * np.cos(a)])
+        R, T = look_at(eye, np.array([0.0, 1.0, 0.0]), np.array([0.0, 1.0, 0.0]))
+        f = 1.25 * img
+        K = np.array([[f, 0, (img - 1) / 2], [0, f, (img - 1) / 2], [0, 0, 1]])
+        cams[f"cam{i:02d}"] = Camera(f"cam{i:02d}", K, R, T, np.zeros(5), img, img)
+    posed = []
+    for fr in range(frames):  # rigid motion per frame; the texture stays attached to the rest surface
+        ang = 0.2 * fr
+        Rz = np.array([[math.cos(ang), 0, math.sin(ang)], [0, 1, 0], [-math.sin(ang), 0, math.cos(ang)]])
+        Vp = (V.astype(np.float64) @ Rz.T + np.array([0.05 * fr, 0, 0])).astype(np.float32)
+        posed.append(Vp)
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(Vp), o3d.core.Tensor(F.astype(np.uint32)))
+        for name, cam in cams.items():
+            rays = pixel_rays(cam.K, cam.R, cam.T, img, img)
+            hit = scene.cast_rays(o3d.core.Tensor(rays))
+            prim = hit["primitive_ids"].numpy().astype(np.int64)
+            buv = hit["primitive_uvs"].numpy().astype(np.float64)
+            m = np.isfinite(hit["t_hit"].numpy())
+            image = np.full((img, img, 3), 0.05, np.float32)
+            tri = F[prim[m]]
+            w = np.stack([1 - buv[m][:, 0] - buv[m][:, 1], buv[m][:, 0], buv[m][:, 1]], 1)
+            rest = (V[tri].astype(np.float64) * w[..., None]).sum(1)
+            image[m] = _albedo(rest)
+            write_image(work / "images" / name / f"{fr:08d}.png", image)
+            write_image(work / "masks" / name / f"{fr:08d}.png", m.astype(np.float32))
+    cap = Capture(work, 30.0, frames, cams, None, t, None, {}, {n: ".png" for n in cams})  # type: ignore[arg-type]
+    return cap, posed
+
+
+def builtin_gt(template, tm) -> np.ndarray:
+    """Albedo at every texel's rest surface point (0 where no triangle)."""
+    gt = np.zeros((tm.size, tm.size, 3), np.float32)
+    v = tm.face >= 0
+    tri = template.faces[tm.face[v]]
+    rest = (template.vertices[tri].astype(np.float64) * tm.bary[v][..., None]).sum(1)
+    gt[v] = _albedo(rest)
+    return gt
+
+
+# --------------------------------------------------------------------------- metrics
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    if a.size == 0:
+        return float("nan")
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+    return 10 * math.log10(1 / max(mse, 1e-20))
+
+
+def capture_gt(root: Path, frame: int, size: int) -> np.ndarray:
+    import cv2
+
+    from gsavatar.utils.io import read_image
+
+    gt = read_image(root / "gt" / "textures" / f"{frame:08d}.png")
+    if gt.shape[:2] != (size, size):
+        interp = cv2.INTER_AREA if gt.shape[0] > size else cv2.INTER_LINEAR
+        gt = cv2.resize(gt, (size, size), interpolation=interp)
+    return gt
+
+
+# --------------------------------------------------------------------------- main
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--capture", type=Path, help="synthetic capture directory (with gt/textures); default: built-in scene")
+    ap.add_argument("--frames", type=int, nargs="+", help="frames to project (default: first 2 train frames / 0 1)")
+    ap.add_argument("--cams", nargs="+", help="cameras (default: all)")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024])
+    ap.add_argument("--views", type=int, default=16, help="built-in scene: number of views")
+    ap.add_argument("--img", type=int, default=1024, help="built-in scene: image size")
+    ap.add_argument("--no-mean", action="store_true", help="skip the 'mean' fusion comparison")
+    ap.add_argument("--uv-cache", type=Path, default=Path(tempfile.gettempdir()) / "gsavatar_uv_cache")
+    args = ap.parse_args()
+
+    tmp = None
+    if args.capture is not None:
+        from gsavatar.data_schema.capture import load_capture
+        from gsavatar.prep.pose_template import pose_vertices
+
+        cap = load_capture(args.capture)
+        if cap.template.corner_uvs is None:
+            raise SystemExit("the capture template has no UVs: gt/textures cannot be compared")
+        frames = args.frames or cap.splits["train"].frames[:2]
+        posed = list(pose_vertices(cap, frames))
+        src = f"capture {args.capture}"
+    else:
+        tmp = tempfile.TemporaryDirectory(prefix="bench_project_uv_")
+        n = max(args.frames) + 1 if args.frames else 2
+        frames = args.frames or [0, 1]
+        t0 = time.perf_counter()
+        cap, posed_all = builtin_scene(Path(tmp.name), args.views, args.img, n, args.uv_cache)
+        posed = [posed_all[f] for f in frames]
+        src = f"built-in ellipsoid scene ({args.views} views {args.img}^2, rendered in {time.perf_counter() - t0:.1f} s)"
+    cams = args.cams or list(cap.cameras)
+    template = cap.template
+    print(f"# bench_project_uv: {src}; {len(template.faces)} triangles, {len(cams)} views, frames {frames}")
+    print(f"# {platform.processor() or platform.machine()}, python {platform.python_version()}")
+
+    # I/O floor: decode every frame's images and masks (done once, reused for every size)
+    views_of, io_s = {}, []
+    for f in frames:
+        t0 = time.perf_counter()
+        views_of[f] = load_frame_views(cap, f, cams)
+        io_s.append(time.perf_counter() - t0)
+    io = float(np.mean(io_s))
+
+    rows = []
+    for size in args.sizes:
+        cfg = ProjectConfig(tex_size=size)
+        t0 = time.perf_counter()
+        tm = build_texel_map(template, size=size, gutter=cfg.gutter_px)
+        t_map = time.perf_counter() - t0
+        proj = UVProjector(template.faces, tm, cfg, template.face_uv_mask)
+        proj_mean = UVProjector(template.faces, tm, ProjectConfig(tex_size=size, fusion="mean"), template.face_uv_mask)
+        proj.project(posed[0], views_of[frames[0]][:2], frame=frames[0])  # warm-up (imports, per-camera setup)
+        secs, p_med, p_mean, seen2 = [], [], [], []
+        for f, V in zip(frames, posed):
+            t0 = time.perf_counter()
+            fus = proj.project(V, views_of[f], frame=f)
+            secs.append(time.perf_counter() - t0)
+            gt = builtin_gt(template, tm) if args.capture is None else capture_gt(args.capture, f, size)
+            m = fus.valid & (fus.seen >= 2)
+            seen2.append(m.sum() / max(proj.num_texels, 1))
+            p_med.append(psnr(fus.texture[m], gt[m]))
+            if not args.no_mean:
+                fm = proj_mean.project(V, views_of[f], frame=f)
+                p_mean.append(psnr(fm.texture[m], gt[m]))
+        s = float(np.mean(secs))
+        rows.append((size, t_map, proj.num_texels, s, io, proj.num_texels / s, float(np.mean(seen2)),
+                     float(np.mean(p_med)), float(np.mean(p_mean)) if p_mean else float("nan")))
+
+    print()
+    print("| tex size | texel map (s, once) | texels projected | project s/frame | I/O floor s/frame | project / I/O | texels/s | seen>=2 | PSNR median_band (dB) | PSNR mean (dB) |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for size, t_map, n, s, io_, tps, s2, pm, pmean in rows:
+        print(f"| {size} | {t_map:.2f} | {n:,} | {s:.3f} | {io_:.3f} | {s / io_:.2f} | {tps / 1e6:.2f} M | {100 * s2:.0f} % | {pm:.2f} | {pmean:.2f} |")
+    if tmp is not None:
+        tmp.cleanup()
+
+
+if __name__ == "__main__":
+    main()
