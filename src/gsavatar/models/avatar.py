@@ -1,0 +1,279 @@
+"""The drivable Gaussian avatar: anchor MLPs + per-Gaussian corrective bases (supp. A).
+
+:class:`GaussianAvatar` only holds parameters and constant buffers; the math lives
+in :mod:`gsavatar.models.gaussians`.
+
+Per frame, every anchor MLP maps ``[θ̂_i, φ̂_i, l_i]`` (masked conditioning pose,
+masked face embedding, appearance latent) to ``n_basis`` Gaussian and
+``n_ctrl_basis`` control-point coefficients. Gaussians and control points
+interpolate them from their 3 nearest anchors. Gaussian properties
+``p = h(λ + <w, ΔΛ>)``:
+
+==================  ======  =====================  ===================================
+property            dims    basis                  activation h
+==================  ======  =====================  ===================================
+scale               3       [G, n_basis, 3]        ``min(exp(x), scale_max)`` metres
+rotation            4       [G, n_basis, 4]        normalise (wxyz)
+opacity             1       none (bias only)       sigmoid
+SH band 0           3       [G, n_basis, 3]        ``tanh(x) * 0.5 / C0``
+SH bands 1..        (K-1)x3 [G, n_basis, K-1, 3]   ``shn_bound * tanh(x)``
+position offset     3       [G, n_basis, 3]        none, no bias ("-/1e-4")
+==================  ======  =====================  ===================================
+
+Control points: displacement ``λ^c + <w^c, ΔΛ^c>`` ([C, 3], [C, n_ctrl_basis, 3]).
+Canonical Gaussian centre = rest position + 3-NN interpolated control displacement
++ Gaussian offset; then LBS with the Gaussians' transferred skin weights and the
+*raw* driving pose (PCA only shapes the MLP input). Posed rotation =
+``polar(blended 3x3) @ R(q)``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from gsavatar.data_schema.rig import BODY_GROUPS, Rig
+from gsavatar.geometry.lbs import RigTensors, skinning_transforms
+from gsavatar.models import gaussians as gm
+from gsavatar.models.config import LearningRates, ModelConfig
+from gsavatar.models.mlp import AnchorMLPs
+from gsavatar.prep.localize import LocalizationMasks
+from gsavatar.prep.pca import PosePCA
+from gsavatar.prep.sample_points import Hierarchy
+
+
+class AvatarOutput(NamedTuple):
+    means: Tensor
+    """Posed world centres, metres.  # [B, G, 3]"""
+    quats: Tensor
+    """Posed world rotations, unit wxyz.  # [B, G, 4]"""
+    scales: Tensor
+    """Activated scales (standard deviations), metres.  # [B, G, 3]"""
+    opacities: Tensor
+    """Activated opacities in (0, 1).  # [B, G]"""
+    sh: Tensor
+    """SH coefficients, K = (sh_degree + 1)^2 of the requested degree; colour = SH·Y + 0.5.  # [B, G, K, 3]"""
+    ctrl_disp: Tensor
+    """Canonical control-point displacements, metres.  # [B, C, 3]"""
+    canonical_means: Tensor
+    """Canonical (rest-space) centres incl. offsets.  # [B, G, 3]"""
+
+
+def _check(name: str, t: Tensor | None, shape: tuple) -> None:
+    if t is None:
+        raise ValueError(f"{name} is required, expected shape {shape}")
+    if t.ndim != len(shape) or any(e is not None and e != a for e, a in zip(shape, t.shape)):
+        pretty = "[" + ", ".join("B" if e is None else str(e) for e in shape) + "]"
+        raise ValueError(f"{name} must be {pretty}, got {list(t.shape)}")
+
+
+class GaussianAvatar(nn.Module):
+    """Anchor MLPs + corrective bases over a prepared hierarchy (see module docstring)."""
+
+    def __init__(
+        self,
+        hierarchy: Hierarchy,
+        masks: LocalizationMasks,
+        rig: Rig,
+        pca_local: PosePCA | None,
+        pca_global: PosePCA | None,
+        config: ModelConfig,
+        face_dim: int | None = None,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        cfg = config if face_dim is None else config.replace(face_dim=int(face_dim))
+        self.config = cfg
+        self.rig = rig
+        A, C, G, P = hierarchy.num_anchors, hierarchy.num_control, hierarchy.num_gaussians, rig.pose_dim
+        if masks.pose.shape != (A, P) or masks.face.shape != (A,):
+            raise ValueError(f"masks must be pose [{A}, {P}] / face [{A}], got {masks.pose.shape} / {masks.face.shape}")
+        needs = {"local": ["local"], "global": ["global"], "global_test_only": ["global"], "none": []}[cfg.pca]
+        for kind, pca in (("local", pca_local), ("global", pca_global)):
+            if kind in needs and pca is None:
+                raise ValueError(f"config.pca={cfg.pca!r} needs pca_{kind}")
+            if pca is not None:
+                pca.check_rig(rig)
+        self.num_anchors, self.num_control, self.num_gaussians, self.pose_dim = A, C, G, P
+        self._rig_cache: dict = {}
+
+        # --- constant buffers ---------------------------------------------------------
+        f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+        i64 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.long)  # noqa: E731
+        g = hierarchy.gaussians
+        self.register_buffer("rest_means", f32(g.position))  # [G, 3] rest positions, metres
+        self.register_buffer("skin_indices", i64(g.skin_indices))  # [G, K]
+        self.register_buffer("skin_weights", f32(g.skin_weights))  # [G, K]
+        self.register_buffer("gauss_anchor_idx", i64(hierarchy.gauss_anchor_idx))  # [G, 3]
+        self.register_buffer("gauss_anchor_w", f32(hierarchy.gauss_anchor_w))  # [G, 3]
+        self.register_buffer("ctrl_anchor_idx", i64(hierarchy.ctrl_anchor_idx))  # [C, 3]
+        self.register_buffer("ctrl_anchor_w", f32(hierarchy.ctrl_anchor_w))  # [C, 3]
+        self.register_buffer("gauss_ctrl_idx", i64(hierarchy.gauss_ctrl_idx))  # [G, 3]
+        self.register_buffer("gauss_ctrl_w", f32(hierarchy.gauss_ctrl_w))  # [G, 3]
+        self.register_buffer("ctrl_neighbors", i64(hierarchy.ctrl_neighbors))  # [C, n] (smoothness loss)
+        self.register_buffer("ctrl_rest", f32(hierarchy.control.position))  # [C, 3]
+        auv = hierarchy.anchors.uv if hierarchy.anchors.uv is not None else np.zeros((A, 2))
+        self.register_buffer("anchor_uv", f32(auv))  # [A, 2] OBJ convention (v up)
+        slot_groups = rig.slot_groups()
+        hand = [BODY_GROUPS.index(h) for h in gm.HAND_GROUP_NAMES]
+        pm = gm.effective_pose_mask(masks.pose, slot_groups, hand, cfg.variant, cfg.local_pose)
+        self.register_buffer("pose_mask", f32(pm))  # [A, P] 0/1
+        self.register_buffer("face_mask", f32(masks.face))  # [A] 0/1
+        for kind, pca in (("local", pca_local), ("global", pca_global)):
+            for name, arr in (("mean", None if pca is None else pca.mean), ("basis", None if pca is None else pca.basis),
+                              ("limit", None if pca is None else pca.clamp_sigma * pca.sigma)):
+                self.register_buffer(f"pca_{kind}_{name}", None if arr is None else f32(arr))
+
+        # --- parameters ------------------------------------------------------------------
+        gen = torch.Generator().manual_seed(seed)
+        Bg, Bc, K = cfg.n_basis, cfg.n_ctrl_basis, cfg.num_sh
+        self.latent_in = cfg.latent_dim if cfg.use_latent else 0
+        in_dim = P + cfg.face_dim + self.latent_in
+        self.mlp = AnchorMLPs(A, in_dim, Bg + Bc, cfg.hidden, cfg.mlp_out_init_scale, gen)
+        log_s, q = gm.init_gaussian_params(g.position, g.normal, cfg.scale_max, cfg.init_normal_scale_ratio)
+        z = lambda *s: nn.Parameter(torch.zeros(*s))  # noqa: E731
+        self.scale_bias = nn.Parameter(f32(log_s))  # [G, 3] log metres
+        self.scale_basis = z(G, Bg, 3)
+        self.rotation_bias = nn.Parameter(f32(q))  # [G, 4] wxyz, unnormalised
+        self.rotation_basis = z(G, Bg, 4)
+        o = float(np.log(cfg.init_opacity / (1 - cfg.init_opacity)))
+        self.opacity_bias = nn.Parameter(torch.full((G,), o))  # [G] logit
+        self.sh0_bias = z(G, 3)  # [G, 3] pre-tanh; 0 = grey (colour 0.5)
+        self.sh0_basis = z(G, Bg, 3)
+        self.shn_bias = z(G, K - 1, 3)  # [G, K-1, 3] pre-tanh
+        self.shn_basis = z(G, Bg, K - 1, 3)
+        self.gauss_pos_basis = z(G, Bg, 3)  # [G, Bg, 3] metres per coefficient
+        self.ctrl_bias = z(C, 3)  # [C, 3] metres
+        self.ctrl_basis = z(C, Bc, 3)
+
+    # --- helpers -------------------------------------------------------------------------
+    def rig_tensors(self, device: torch.device, dtype: torch.dtype) -> RigTensors:
+        key = (device, dtype)
+        if key not in self._rig_cache:
+            self._rig_cache[key] = RigTensors(self.rig, device, dtype)
+        return self._rig_cache[key]
+
+    def conditioning_pose(self, pose: Tensor) -> Tensor:
+        """MLP pose input after the configured PCA (mode depends on ``self.training``). [B, P] -> [B, P]"""
+        mode = gm.pca_mode_for(self.config.pca, self.training)
+        if mode == "none":
+            return pose
+        m, b, lim = (getattr(self, f"pca_{mode}_{n}") for n in ("mean", "basis", "limit"))
+        return gm.pca_project(pose, m.to(pose.dtype), b.to(pose.dtype), lim.to(pose.dtype))
+
+    def anchor_inputs(self, pose: Tensor, face: Tensor | None = None, latents: Tensor | None = None) -> Tensor:
+        """Per-anchor MLP input ``[θ̂_i, φ̂_i, l_i]``. pose [B, P], face [B, E], latents [B, A, L] -> [B, A, P+E+L]"""
+        dt = pose.dtype
+        return gm.anchor_inputs(
+            self.conditioning_pose(pose), self.pose_mask.to(dt), face, self.face_mask.to(dt), self.config.face_dim,
+            latents if self.latent_in else None, self.latent_in,
+        )
+
+    def _validate(self, pose, root_rotation, root_translation, face, latents, sh_degree) -> None:
+        _check("pose", pose, (None, self.pose_dim))
+        B = pose.shape[0]
+        _check("root_rotation", root_rotation, (B, 3))
+        _check("root_translation", root_translation, (B, 3))
+        if face is not None:
+            if self.config.face_dim == 0:
+                raise ValueError(f"face given with shape {list(face.shape)} but the model has face_dim=0")
+            _check("face", face, (B, self.config.face_dim))
+        if latents is not None and self.latent_in:
+            _check("latents", latents, (B, self.num_anchors, self.latent_in))
+        if not 0 <= sh_degree <= self.config.sh_degree:
+            raise ValueError(f"sh_degree must be in [0, {self.config.sh_degree}], got {sh_degree}")
+
+    # --- forward ---------------------------------------------------------------------------
+    def forward(
+        self,
+        pose: Tensor,
+        root_rotation: Tensor,
+        root_translation: Tensor,
+        face: Tensor | None = None,
+        latents: Tensor | None = None,
+        sh_degree: int | None = None,
+        correctives: bool = True,
+    ) -> AvatarOutput:
+        """Posed Gaussians for a batch of frames.
+
+        Args:
+            pose: Tensor  # [B, P] radians, rig order (raw; PCA applied to the MLP input only)
+            root_rotation: Tensor  # [B, 3] axis-angle
+            root_translation: Tensor  # [B, 3] metres
+            face: Tensor | None  # [B, E] face embedding; None -> zeros
+            latents: Tensor | None  # [B, A, L] appearance latents; None -> zeros; ignored if not use_latent
+            sh_degree: SH degree to output (<= config.sh_degree; None -> config.sh_degree)
+            correctives: evaluate the anchor MLPs; False -> bias terms only (early training)
+
+        Returns:
+            AvatarOutput (see its fields)
+        """
+        deg = self.config.sh_degree if sh_degree is None else int(sh_degree)
+        self._validate(pose, root_rotation, root_translation, face, latents, deg)
+        B, Bg = pose.shape[0], self.config.n_basis
+        w_g = w_c = None
+        if correctives:
+            coeffs = self.mlp(self.anchor_inputs(pose, face, latents))  # [B, A, Bg + Bc]
+            w_g = gm.interpolate(coeffs[..., :Bg], self.gauss_anchor_idx, self.gauss_anchor_w)  # [B, G, Bg]
+            w_c = gm.interpolate(coeffs[..., Bg:], self.ctrl_anchor_idx, self.ctrl_anchor_w)  # [B, C, Bc]
+        ctrl_disp = gm.apply_basis(self.ctrl_bias, self.ctrl_basis, w_c, B)  # [B, C, 3]
+        offset = gm.interpolate(ctrl_disp, self.gauss_ctrl_idx, self.gauss_ctrl_w)  # [B, G, 3]
+        if w_g is not None:
+            offset = offset + torch.einsum("bgk,gkd->bgd", w_g, self.gauss_pos_basis)
+        canonical = self.rest_means[None] + offset  # [B, G, 3]
+
+        scales = gm.activate_scale(gm.apply_basis(self.scale_bias, self.scale_basis, w_g, B), self.config.scale_max)
+        quats_c = gm.activate_quat(gm.apply_basis(self.rotation_bias, self.rotation_basis, w_g, B))
+        opacities = torch.sigmoid(self.opacity_bias)[None].expand(B, -1)  # [B, G]
+        sh0 = gm.activate_sh0(gm.apply_basis(self.sh0_bias, self.sh0_basis, w_g, B))  # [B, G, 3]
+        n_rest = (deg + 1) ** 2 - 1
+        if n_rest:
+            x = gm.apply_basis(self.shn_bias[:, :n_rest], self.shn_basis[:, :, :n_rest], w_g, B)
+            sh = torch.cat([sh0[:, :, None], gm.activate_shn(x, self.config.shn_bound)], dim=2)  # [B, G, K, 3]
+        else:
+            sh = sh0[:, :, None]
+
+        T = skinning_transforms(self.rig_tensors(pose.device, pose.dtype), pose, root_rotation, root_translation)  # [B, J, 4, 4]
+        affine = gm.blend_affine(T, self.skin_indices, self.skin_weights)  # [B, G, 3, 4]
+        means, quats = gm.pose_gaussians(canonical, quats_c, affine)
+        return AvatarOutput(means, quats, scales, opacities, sh, ctrl_disp, canonical)
+
+    # --- optimisation ----------------------------------------------------------------------
+    _GROUPS = (
+        ("scale_bias", "scale_bias"), ("scale_basis", "scale_basis"),
+        ("rotation_bias", "rotation_bias"), ("rotation_basis", "rotation_basis"),
+        ("opacity_bias", "opacity_bias"),
+        ("sh0_bias", "sh0_bias"), ("sh0_basis", "sh0_basis"),
+        ("shn_bias", "shn_bias"), ("shn_basis", "shn_basis"),
+        ("ctrl_bias", "ctrl_bias"), ("ctrl_basis", "ctrl_basis"),
+        ("gauss_pos_basis", "gauss_pos_basis"),
+    )
+
+    def param_groups(self, lrs: LearningRates | None = None) -> list[dict]:
+        """AdamW parameter groups with the paper's per-property learning rates (supp. D.1).
+
+        Every group has ``name``, ``params``, ``lr`` and ``weight_decay`` (anchor MLPs:
+        ``lrs.mlp_weight_decay``, everything else 0). Empty parameters (SH bands at
+        degree 0) are left out. Use with ``torch.optim.AdamW(groups, eps=1e-15, betas=(0.9, 0.999))``.
+        """
+        lrs = lrs or LearningRates()
+        groups = [{"name": "mlp", "params": list(self.mlp.parameters()), "lr": lrs.mlp, "weight_decay": lrs.mlp_weight_decay}]
+        for attr, lr_name in self._GROUPS:
+            p = getattr(self, attr)
+            if p.numel():
+                groups.append({"name": attr, "params": [p], "lr": getattr(lrs, lr_name), "weight_decay": 0.0})
+        covered = {id(p) for g in groups for p in g["params"]}
+        missing = [n for n, p in self.named_parameters() if id(p) not in covered and p.numel()]
+        if missing:  # pragma: no cover - guards future parameters
+            raise RuntimeError(f"parameters without an optimiser group: {missing}")
+        return groups
+
+    def parameter_counts(self) -> dict[str, int]:
+        """Number of scalars per parameter group (and ``total``)."""
+        out = {"mlp": sum(p.numel() for p in self.mlp.parameters())}
+        out.update({a: getattr(self, a).numel() for a, _ in self._GROUPS})
+        out["total"] = sum(out.values())
+        return out

@@ -1,0 +1,168 @@
+"""Model configuration: :class:`ModelConfig`, learning rates and named presets.
+
+Paper sizes (supp. D.1 / D.2): anchor MLPs with hidden layers ``(512, 256, 256, 256)``,
+16 Gaussian-corrective and 16 control-point coefficients per anchor, appearance
+latents ``N_l = 16``, SH up to degree 1.
+
+Ablations / baselines (paper section 4) map onto the config as follows
+(see :func:`variant_config`):
+
+=====================  ========  ==========  ==================  ==========
+name                   variant   local_pose  pca                 use_latent
+=====================  ========  ==========  ==================  ==========
+ours                   ours      True        local               True
+w/o local pose         ours      False       local               True
+w/o local PCA          ours      True        global              True
+w/o appearance         ours      True        local               False
+MMLPs-dagger           mmlps     True        global_test_only    False
+=====================  ========  ==========  ==================  ==========
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Literal
+
+Variant = Literal["ours", "mmlps"]
+PcaMode = Literal["local", "global", "global_test_only", "none"]
+PresetName = Literal["tiny", "small", "paper"]
+VariantName = Literal["ours", "wo_local_pose", "wo_local_pca", "wo_appearance", "mmlps_dagger"]
+
+SH_C0 = 0.28209479177387814
+"""Band-0 real SH constant: ``colour = SH0 * SH_C0 + 0.5``."""
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Hyper-parameters of the Gaussian avatar (anchor MLPs + per-Gaussian bases)."""
+
+    hidden: tuple[int, ...] = (512, 256, 256, 256)
+    """Hidden layer widths of every anchor MLP (paper: 512, 256, 256, 256)."""
+    n_basis: int = 16
+    """Gaussian corrective coefficients per anchor (length of ``w`` in supp. A, paper 16)."""
+    n_ctrl_basis: int = 16
+    """Control-point corrective coefficients per anchor (paper 16)."""
+    latent_dim: int = 16
+    """Appearance latent size ``N_l`` per anchor (paper 16); unused when ``use_latent`` is False."""
+    sh_degree: int = 1
+    """Maximum SH degree (paper: 0 for the first 60k iterations, then 1)."""
+    scale_max: float = 0.05
+    """Upper clamp of the activated Gaussian scale, metres. The paper's "0.2" is in its
+    own (unstated, not metric) units; 5 cm is our metric equivalent for a human body."""
+    variant: Variant = "ours"
+    """``ours``: per-anchor localized pose; ``mmlps``: MMLPs baseline, every anchor sees
+    the full pose except the hand/finger parameters, which stay localized ("augmented
+    with our localized face embedding and localized hand/finger pose conditioning")."""
+    local_pose: bool = True
+    """Multiply each anchor's pose input by its pose mask. False = ablation "w/o local
+    pose": every anchor sees every pose parameter (hands included, any variant)."""
+    pca: PcaMode = "local"
+    """Pose PCA applied to the MLP pose input (never to the skinning pose): ``local`` in
+    train and test (ours), ``global`` in train and test (ablation "w/o local PCA"),
+    ``global_test_only`` only in eval mode (MMLPs-dagger), ``none``."""
+    use_latent: bool = True
+    """Feed the per-anchor appearance latent to the MLPs (False for MMLPs-dagger)."""
+    face_dim: int = 0
+    """Face embedding size ``E`` (from the capture's ``motion.face``; 0 = no face input)."""
+    init_opacity: float = 0.9
+    """Initial activated opacity of every Gaussian."""
+    init_normal_scale_ratio: float = 0.3
+    """Initial scale along the surface normal relative to the tangent scale (flat Gaussians)."""
+    shn_bound: float = 1.0
+    """Higher-order SH coefficients are ``shn_bound * tanh(x)`` (a degree-1 term shifts
+    colour by at most ``0.489 * shn_bound``)."""
+    mlp_out_init_scale: float = 1.0
+    """Scale of the anchor MLPs' last-layer init relative to ``nn.Linear``'s. Correctives
+    start at exactly 0 anyway because every basis ``ΔΛ`` is zero-initialised; a zero or
+    tiny last layer as well would stall learning (the gradient of each factor of
+    ``<w, ΔΛ>`` is proportional to the other)."""
+
+    def __post_init__(self) -> None:
+        if not self.hidden or any(int(h) <= 0 for h in self.hidden):
+            raise ValueError(f"hidden must be a non-empty tuple of positive ints, got {self.hidden!r}")
+        for name in ("n_basis", "n_ctrl_basis", "latent_dim"):
+            if int(getattr(self, name)) <= 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not 0 <= self.sh_degree <= 3:
+            raise ValueError(f"sh_degree must be in [0, 3], got {self.sh_degree}")
+        if not self.scale_max > 0:
+            raise ValueError(f"scale_max must be > 0 (metres), got {self.scale_max}")
+        if self.variant not in ("ours", "mmlps"):
+            raise ValueError(f"variant must be 'ours' or 'mmlps', got {self.variant!r}")
+        if self.pca not in ("local", "global", "global_test_only", "none"):
+            raise ValueError(f"pca must be local/global/global_test_only/none, got {self.pca!r}")
+        if self.face_dim < 0:
+            raise ValueError(f"face_dim must be >= 0, got {self.face_dim}")
+        if not 0 < self.init_opacity < 1:
+            raise ValueError(f"init_opacity must be in (0, 1), got {self.init_opacity}")
+        object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
+
+    @property
+    def num_sh(self) -> int:
+        """SH coefficients per channel at ``sh_degree``: ``(sh_degree + 1)^2``."""
+        return (self.sh_degree + 1) ** 2
+
+    def replace(self, **changes) -> ModelConfig:
+        """Copy with some fields changed (validated)."""
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class LearningRates:
+    """Per-property learning rates, (bias / corrective basis), paper supp. D.1."""
+
+    scale_bias: float = 5e-4
+    """Log-scale bias ``λ_s``."""
+    scale_basis: float = 1e-4
+    """Scale basis ``ΔΛ_s``."""
+    rotation_bias: float = 5e-4
+    """Quaternion bias ``λ_r``."""
+    rotation_basis: float = 1e-4
+    """Quaternion basis ``ΔΛ_r``."""
+    opacity_bias: float = 5e-4
+    """Opacity logit (bias only; no opacity correctives)."""
+    sh0_bias: float = 2.5e-3
+    """SH band 0 bias (pre-tanh)."""
+    sh0_basis: float = 1e-4
+    """SH band 0 basis."""
+    shn_bias: float = 2.5e-5
+    """Higher SH bands bias (pre-tanh)."""
+    shn_basis: float = 2.5e-6
+    """Higher SH bands basis."""
+    ctrl_bias: float = 1.6e-4
+    """Control-point displacement bias, metres."""
+    ctrl_basis: float = 1.6e-5
+    """Control-point displacement basis."""
+    gauss_pos_basis: float = 1e-4
+    """Per-Gaussian position-offset basis (no bias: "Gaussian position -/1e-4")."""
+    mlp: float = 5e-4
+    """Anchor MLP weights and biases."""
+    mlp_weight_decay: float = 1e-3
+    """AdamW weight decay of the anchor MLPs (every other group: 0)."""
+    encoder: float = 5e-4
+    """Appearance encoder (supp. D.2)."""
+    encoder_weight_decay: float = 1e-3
+    """AdamW weight decay of the appearance encoder."""
+
+
+def model_preset(name: PresetName, **overrides) -> ModelConfig:
+    """Named sizes: ``tiny`` (hidden (64, 64), tests / CPU), ``small`` ((128, 128, 128)), ``paper``."""
+    hidden = {"tiny": (64, 64), "small": (128, 128, 128), "paper": (512, 256, 256, 256)}
+    if name not in hidden:
+        raise ValueError(f"unknown preset {name!r}; expected one of {sorted(hidden)}")
+    return ModelConfig(hidden=hidden[name], **overrides)
+
+
+def variant_config(base: ModelConfig, name: VariantName) -> ModelConfig:
+    """The config of one of the paper's ablations / baselines (table in the module docstring)."""
+    table = {
+        "ours": dict(variant="ours", local_pose=True, pca="local", use_latent=True),
+        "wo_local_pose": dict(variant="ours", local_pose=False, pca="local", use_latent=True),
+        "wo_local_pca": dict(variant="ours", local_pose=True, pca="global", use_latent=True),
+        "wo_appearance": dict(variant="ours", local_pose=True, pca="local", use_latent=False),
+        "mmlps_dagger": dict(variant="mmlps", local_pose=True, pca="global_test_only", use_latent=False),
+    }
+    if name not in table:
+        raise ValueError(f"unknown variant {name!r}; expected one of {sorted(table)}")
+    return base.replace(**table[name])

@@ -1,0 +1,163 @@
+"""Convolutional VAE appearance encoder (paper section 3.3, supp. D.2).
+
+Input: the per-frame UV texture with the face region masked out, ``[B, 3, S, S]``
+values in [0, 1] (row 0 = v = 1, OBJ convention), ``S`` a power of two >= 64
+(paper: 1024). Five down-convolutions (k3, s2, p1), each followed by GroupNorm and
+ReLU, with channels 8, 16, 32, 64, 128 (doubling from 8, capped at 128), give a
+``[B, 128, S/32, S/32]`` grid (paper: 32x32). GroupNorm uses 8 groups (the paper's
+"8-wide group normalization"; a layer with fewer than 8 channels would use one group
+per channel). Two 3x3 convolutions predict ``mu`` and ``log sigma^2`` maps with
+``N_l`` channels; latents are sampled with the reparameterisation trick in training
+mode and equal ``mu`` in eval mode. ``logvar`` is clamped to ``[-30, 20]``.
+
+Each anchor reads its local code by bilinear lookup at its UV (:func:`sample_at_uv`).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+LOGVAR_RANGE = (-30.0, 20.0)
+
+
+class EncoderOutput(NamedTuple):
+    latent_map: Tensor
+    """Sampled latents (training) or ``mu`` (eval).  # [B, L, h, w]"""
+    mu: Tensor
+    """Posterior mean.  # [B, L, h, w]"""
+    logvar: Tensor
+    """Posterior log-variance, clamped to ``LOGVAR_RANGE``.  # [B, L, h, w]"""
+
+
+def encoder_channels(n_down: int = 5, first: int = 8, max_channels: int = 128) -> list[int]:
+    """Output channels of each down layer: ``first``, doubling, capped at ``max_channels``."""
+    return [min(first * 2**i, max_channels) for i in range(n_down)]
+
+
+def reparameterize(mu: Tensor, logvar: Tensor, generator: torch.Generator | None = None) -> Tensor:
+    """``mu + exp(logvar / 2) * eps``, ``eps ~ N(0, 1)`` drawn from ``generator``. [...] -> [...]"""
+    eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
+    return mu + torch.exp(0.5 * logvar) * eps
+
+
+def kl_divergence(mu: Tensor, logvar: Tensor) -> Tensor:
+    """KL(N(mu, exp(logvar)) || N(0, 1)), mean over all elements (a scalar).
+
+    mu, logvar: Tensor  # [...] same shape. logvar is clamped to ``LOGVAR_RANGE``
+    first, so the result is finite for any finite input.
+    """
+    if mu.shape != logvar.shape:
+        raise ValueError(f"mu and logvar must have the same shape, got {tuple(mu.shape)} and {tuple(logvar.shape)}")
+    logvar = logvar.clamp(*LOGVAR_RANGE)
+    return 0.5 * (mu * mu + torch.exp(logvar) - 1.0 - logvar).mean()
+
+
+def sample_at_uv(latent_map: Tensor, uv: Tensor) -> Tensor:
+    """Bilinear lookup of per-anchor codes at UV coordinates.
+
+    Texture convention: row 0 is v = 1 (OBJ, v up), column 0 is u = 0; texel ``(r, c)``
+    covers ``u in [c/w, (c+1)/w]``. ``grid_sample`` with ``align_corners=False``,
+    ``x = 2u - 1``, ``y = 1 - 2v``; outside the texel-centre range the border texel is
+    repeated (``padding_mode="border"``).
+
+    Args:
+        latent_map: Tensor  # [B, L, h, w]
+        uv: Tensor  # [A, 2] (u, v) in [0, 1]
+
+    Returns:
+        Tensor  # [B, A, L]
+    """
+    if latent_map.ndim != 4:
+        raise ValueError(f"latent_map must be [B, L, h, w], got {tuple(latent_map.shape)}")
+    if uv.ndim != 2 or uv.shape[1] != 2:
+        raise ValueError(f"uv must be [A, 2], got {tuple(uv.shape)}")
+    B = latent_map.shape[0]
+    uv = uv.to(device=latent_map.device, dtype=latent_map.dtype)
+    grid = torch.stack([2.0 * uv[:, 0] - 1.0, 1.0 - 2.0 * uv[:, 1]], dim=-1)  # [A, 2]
+    grid = grid[None, None].expand(B, 1, -1, 2)  # [B, 1, A, 2]
+    out = F.grid_sample(latent_map, grid, mode="bilinear", padding_mode="border", align_corners=False)  # [B, L, 1, A]
+    return out[:, :, 0].transpose(1, 2)  # [B, A, L]
+
+
+def mask_texture(texture: Tensor, face_uv_mask: Tensor, fill: float = 0.0) -> Tensor:
+    """Blank the face region of UV textures before encoding.
+
+    Args:
+        texture: Tensor  # [B, 3, S, S] values in [0, 1], row 0 = v = 1
+        face_uv_mask: Tensor  # [h, w] bool (row 0 = v = 1), nearest-resized to S x S
+        fill: value written inside the face region
+
+    Returns:
+        Tensor  # [B, 3, S, S]
+    """
+    if texture.ndim != 4 or face_uv_mask.ndim != 2:
+        raise ValueError(f"texture must be [B, C, S, S] and face_uv_mask [h, w], got {tuple(texture.shape)}, {tuple(face_uv_mask.shape)}")
+    m = face_uv_mask.to(device=texture.device, dtype=torch.float32)[None, None]
+    m = F.interpolate(m, size=texture.shape[-2:], mode="nearest")[0, 0] > 0.5  # [S, S]
+    return torch.where(m, torch.as_tensor(fill, dtype=texture.dtype, device=texture.device), texture)
+
+
+class AppearanceEncoder(nn.Module):
+    """CNN VAE: UV texture ``[B, 3, S, S]`` -> latent map ``[B, N_l, S/32, S/32]``."""
+
+    def __init__(
+        self,
+        latent_dim: int = 16,
+        in_channels: int = 3,
+        n_down: int = 5,
+        first_channels: int = 8,
+        max_channels: int = 128,
+        gn_groups: int = 8,
+    ) -> None:
+        super().__init__()
+        self.latent_dim = int(latent_dim)
+        self.in_channels = int(in_channels)
+        self.n_down = int(n_down)
+        layers: list[nn.Module] = []
+        c_in = in_channels
+        for c in encoder_channels(n_down, first_channels, max_channels):
+            layers += [nn.Conv2d(c_in, c, 3, stride=2, padding=1), nn.GroupNorm(min(gn_groups, c), c), nn.ReLU(inplace=True)]
+            c_in = c
+        self.trunk = nn.Sequential(*layers)
+        self.feature_channels = c_in
+        self.mu_head = nn.Conv2d(c_in, latent_dim, 3, padding=1)
+        self.logvar_head = nn.Conv2d(c_in, latent_dim, 3, padding=1)
+
+    @property
+    def downsample(self) -> int:
+        """Spatial reduction factor ``2^n_down`` (paper: 32)."""
+        return 2**self.n_down
+
+    def grid_size(self, size: int) -> int:
+        """Latent grid side for a texture of side ``size``."""
+        return size // self.downsample
+
+    def _check(self, texture: Tensor) -> None:
+        if texture.ndim != 4 or texture.shape[1] != self.in_channels:
+            raise ValueError(f"texture must be [B, {self.in_channels}, S, S], got {tuple(texture.shape)}")
+        for s in texture.shape[-2:]:
+            if s < 2 * self.downsample or s & (s - 1):
+                raise ValueError(
+                    f"texture sides must be powers of two >= {2 * self.downsample}, got {tuple(texture.shape[-2:])}"
+                )
+
+    def features(self, texture: Tensor) -> Tensor:
+        """Trunk output. texture [B, 3, S, S] -> [B, 128, S/32, S/32]"""
+        self._check(texture)
+        return self.trunk(texture)
+
+    def forward(self, texture: Tensor, generator: torch.Generator | None = None) -> EncoderOutput:
+        """texture: Tensor  # [B, 3, S, S] in [0, 1], face masked -> EncoderOutput (maps [B, L, S/32, S/32])."""
+        h = self.features(texture)
+        mu = self.mu_head(h)
+        logvar = self.logvar_head(h).clamp(*LOGVAR_RANGE)
+        z = reparameterize(mu, logvar, generator) if self.training else mu
+        return EncoderOutput(z, mu, logvar)
+
+    def param_groups(self, lr: float = 5e-4, weight_decay: float = 1e-3) -> list[dict]:
+        """One AdamW group (supp. D.2: lr 5e-4, weight decay 1e-3)."""
+        return [{"name": "encoder", "params": list(self.parameters()), "lr": lr, "weight_decay": weight_decay}]

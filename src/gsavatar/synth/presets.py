@@ -1,0 +1,141 @@
+"""Configuration of synthetic capture builds (:func:`gsavatar.synth.make.make_capture`).
+
+Presets:
+
+- ``tiny``: decimated body (~3k vertices), 6 cameras of 128x128, 12 frames, 256^2
+  texture. For unit tests: builds in seconds once the Anny cache exists.
+- ``small``: the demo capture: full body (~13.5k vertices), 12 cameras of 256x256,
+  120 frames at 30 fps (4 s, incl. a turn-around), 512^2 texture. A few minutes on 2 cores.
+- ``hard``: stability stressors for texture projection/fusion: a sparse dome (texels
+  seen by a single view), grazing top-down and floor-level cameras, a camera pointed
+  away (sees nothing), a box occluding part of the body in one view only, and one
+  corrupted view (strong colour cast + noise in half of its frames) that median-band
+  fusion must reject.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Literal
+
+from gsavatar.synth.appearance import AppearanceConfig
+from gsavatar.synth.cameras import SpecialKind
+
+PresetName = Literal["tiny", "small", "hard"]
+DEFAULT_BVH = "/usr/share/assimp/models/BVH/01_01.bvh"
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """Everything that determines a synthetic capture (saved as ``gt/config.json``)."""
+
+    preset: str = "small"
+    """Name of the preset this config came from (recorded in ``gt/config.json``)."""
+    seed: int = 0
+    """Seed of everything random (appearance, camera jitter, corruption); same seed -> same bytes."""
+    body_seed: int = 0
+    """Anny phenotype: 0 = the default average body, else a random adult drawn from this seed."""
+    decimate_to: int | None = None
+    """Target vertex count of the body mesh (quadric decimation), or None for the full mesh."""
+    num_cams: int = 12
+    """Cameras of the dome, split evenly between full-, upper- and lower-body views."""
+    width: int = 256
+    """Image width, pixels."""
+    height: int = 256
+    """Image height, pixels."""
+    distortion: bool = True
+    """Give about half the dome cameras a small lens distortion (|k1| <= 0.05)."""
+    cam_radius: float = 3.2
+    """Distance of the dome cameras from the body's vertical axis, metres."""
+    num_frames: int = 120
+    """Frames F of the capture."""
+    fps: float = 30.0
+    """Frame rate the mocap is resampled to."""
+    bvh_path: str = DEFAULT_BVH
+    """Motion capture (CMU BVH) that drives the body."""
+    bvh_start: int = 960
+    """First SOURCE frame of the BVH segment (01_01 is 120 fps; 960 = 8 s, just before a turn-around)."""
+    root_xz: Literal["keep", "center", "treadmill"] = "treadmill"
+    """Horizontal root motion: ``keep`` as captured; ``center`` subtract the segment mean; ``treadmill``
+    subtract a Gaussian-smoothed trajectory too, so travelling motion (01_01 hops 3.5 m) stays in the dome."""
+    treadmill_sigma_s: float = 0.6
+    """Smoothing of the trajectory ``treadmill`` removes, seconds."""
+    tex_size: int = 512
+    """Resolution of the ground-truth UV texture (square)."""
+    supersample: int = 2
+    """Rays per pixel along each axis (2 -> 2x2), anti-aliases edges and mask coverage."""
+    shading: bool = True
+    """Lambertian shading (ambient 0.65 + 0.35 diffuse) on top of the albedo; False renders the albedo."""
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Background colour, RGB in [0, 1]."""
+    test_fraction: float = 0.2
+    """Fraction of frames held out as the test segment (the tail of the sequence)."""
+    test_cameras: int = 1
+    """Cameras held out for test: 1 = ``full01``; 2 adds the frontal ``upper00``; 3 the frontal ``lower00``."""
+    coupled_param: str | None = None
+    """Pose parameter the trouser folds follow in train frames; None = the ``RightHand`` (else right-hand
+    group) parameter that varies most over the train frames."""
+    appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
+    """Time-varying ground-truth appearance."""
+    special_cameras: tuple[SpecialKind, ...] = ()
+    """Extra stress views: ``top`` (grazing, from above), ``floor`` (grazing, from the feet), ``away`` (sees nothing)."""
+    occluded_camera: str | None = None
+    """Dome camera that sees a box occluding part of the body (only that view has the box)."""
+    corrupted_camera: str | None = None
+    """Dome camera whose images get a strong colour cast and noise in some frames."""
+    corrupted_fraction: float = 0.5
+    """Fraction of frames in which ``corrupted_camera`` is corrupted."""
+    workers: int = 0
+    """Render processes; 0 = one per CPU core, 1 = in this process."""
+
+    def to_json(self) -> dict:
+        """Plain-JSON form for ``gt/config.json``; ``workers`` is left out (it never changes the output)."""
+        d = dataclasses.asdict(self)
+        d.pop("workers")
+        d["background"] = list(self.background)
+        d["special_cameras"] = list(self.special_cameras)
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict) -> SynthConfig:
+        """Inverse of :meth:`to_json` (e.g. to rebuild a capture from its ``gt/config.json``)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"unknown SynthConfig fields {sorted(unknown)}")
+        kw = dict(d)
+        if "appearance" in kw:
+            kw["appearance"] = AppearanceConfig(**kw["appearance"])
+        for k in ("background", "special_cameras"):
+            if k in kw:
+                kw[k] = tuple(kw[k])
+        return cls(**kw)
+
+
+PRESETS: dict[str, SynthConfig] = {
+    "tiny": SynthConfig(
+        preset="tiny", decimate_to=3000, num_cams=6, width=128, height=128, num_frames=12, fps=15.0,
+        bvh_start=1040, tex_size=256, test_fraction=0.25, test_cameras=1,
+        appearance=AppearanceConfig(fold_dwell_s=0.25, drift_period_s=2.0, face_period_s=0.8)),
+    "small": SynthConfig(preset="small", tex_size=512, test_cameras=2),
+    "hard": SynthConfig(
+        preset="hard", decimate_to=6000, num_cams=9, width=192, height=192, num_frames=24, fps=15.0,
+        bvh_start=1000, tex_size=512, test_cameras=1, special_cameras=("top", "floor", "away"),
+        occluded_camera="full02", corrupted_camera="upper01", corrupted_fraction=0.5,
+        appearance=AppearanceConfig(fold_dwell_s=0.5, drift_period_s=3.0)),
+}
+
+
+PRESET_HELP: dict[str, str] = {
+    "tiny": "unit-test capture: ~3k-vertex body, 6 cameras 128x128, 12 frames, 256^2 texture (seconds)",
+    "small": "demo capture: full body, 12 cameras 256x256, 120 frames at 30 fps, 512^2 texture (minutes)",
+    "hard": "stress capture: sparse dome + grazing/away cameras, one occluded and one corrupted view",
+}
+
+
+def preset(name: PresetName, **overrides) -> SynthConfig:
+    """A named preset, optionally with some fields replaced (``preset("tiny", seed=3)``)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; expected one of {sorted(PRESETS)}")
+    return dataclasses.replace(PRESETS[name], **overrides)
