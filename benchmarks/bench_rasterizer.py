@@ -85,8 +85,8 @@ def ring_cameras(n_cams: int, res: int) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.stack(vms), K.expand(n_cams, 3, 3).clone()
 
 
-def time_step(n: int, res: int, n_cams: int, repeats: int) -> tuple[float, float, dict]:
-    """Median forward and forward+backward wall time (ms) of one render."""
+def time_step(n: int, res: int, n_cams: int, repeats: int) -> dict:
+    """Wall times (ms) of a no-grad forward and of forward + backward of one render."""
     scene = avatar_scene(n)
     params = {k: v.clone().requires_grad_(True) for k, v in scene.items()}
     viewmats, Ks = ring_cameras(n_cams, res)
@@ -95,23 +95,27 @@ def time_step(n: int, res: int, n_cams: int, repeats: int) -> tuple[float, float
     def render():
         return rasterize(
             params["means"], params["quats"], params["scales"], params["opacities"],
-            params["colors"], viewmats, Ks, res, res, backgrounds=bg, backend="torch",
+            params["colors"], viewmats, Ks, res, res, bg, backend="torch",
         )
 
     out = render()  # warm-up (allocator, lazy init)
     out.colors.sum().backward()
-    fwd, full = [], []
+    fwd, full, cpu = [], [], []
     for _ in range(repeats):
         t0 = time.perf_counter()
         with torch.no_grad():
             render()
         fwd.append(time.perf_counter() - t0)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         out = render()
         (out.colors.square().mean() + out.alphas.mean()).backward()
         full.append(time.perf_counter() - t0)
-    stats = out.meta["stats"]._asdict()
-    return 1e3 * sorted(fwd)[len(fwd) // 2], 1e3 * sorted(full)[len(full) // 2], stats
+        cpu.append(time.process_time() - c0)
+    med = lambda xs: 1e3 * sorted(xs)[len(xs) // 2]  # noqa: E731
+    return {
+        "fwd_min": 1e3 * min(fwd), "full_min": 1e3 * min(full), "full_med": med(full),
+        "cpu_med": med(cpu), "stats": out.meta["stats"],
+    }
 
 
 def main() -> None:
@@ -119,20 +123,26 @@ def main() -> None:
     parser.add_argument("--gaussians", type=int, nargs="+", default=[1000, 10000, 50000])
     parser.add_argument("--resolutions", type=int, nargs="+", default=[128, 256, 512])
     parser.add_argument("--cameras", type=int, default=1)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
 
-    print(f"machine: {platform.platform()}, {platform.processor() or platform.machine()}, "
-          f"{os.cpu_count()} cpus, torch {torch.__version__}, "
-          f"torch threads {torch.get_num_threads()}, cameras per render {args.cameras}")
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    print(f"machine: {platform.platform()}, {platform.machine()}, {os.cpu_count()} cpus, "
+          f"torch {torch.__version__}, torch threads {torch.get_num_threads()}, "
+          f"cameras per render {args.cameras}, load average before run {load}")
     print()
-    print("| Gaussians | resolution | forward ms | forward+backward ms | candidates | contributing |")
-    print("|---:|---:|---:|---:|---:|---:|")
+    print("| Gaussians | resolution | fwd ms (min) | fwd+bwd ms (min) | fwd+bwd ms (median) "
+          "| fwd+bwd CPU ms (median) | candidates | contributing |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|")
     for n in args.gaussians:
         for res in args.resolutions:
-            fwd, full, st = time_step(n, res, args.cameras, args.repeats)
-            print(f"| {n} | {res}x{res} | {fwd:.0f} | {full:.0f} | "
-                  f"{st['n_candidates']:,} | {st['n_contributing']:,} |", flush=True)
+            r = time_step(n, res, args.cameras, args.repeats)
+            st = r["stats"]
+            print(f"| {n} | {res}x{res} | {r['fwd_min']:.0f} | {r['full_min']:.0f} | {r['full_med']:.0f} "
+                  f"| {r['cpu_med']:.0f} | {st.n_candidates:,} | {st.n_contributing:,} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -22,4 +22,6 @@ PY=${PYTHON:-python3}
 # anny's declared dependencies pull warp-lang and other torch builds; its runtime needs
 # are in the [body] extra above.
 .venv/bin/python -c "import anny" 2>/dev/null || .venv/bin/pip install -q --no-deps anny==0.6.2
+# ST-LPIPS weights (AlexNet/VGG) for the perceptual loss/metric; its code needs torchvision, we only read its weight files.
+.venv/bin/python -c "import importlib.util as u, sys; sys.exit(0 if u.find_spec('stlpips_pytorch') else 1)" || .venv/bin/pip install -q --no-deps stlpips-pytorch==0.0.2
 echo "[setup] ok: $(.venv/bin/python -c 'import torch, gsavatar; print("torch", torch.__version__, "gsavatar", gsavatar.__version__)')"

@@ -109,6 +109,8 @@ class All(StageArgs):
 
     project: ProjectConfig = field(default_factory=ProjectConfig)
     """Projection settings."""
+    figures: bool = True
+    """Render the localization figures (pyvista off-screen)."""
 
     def run(self) -> None:
         stages.pose_template(self)
@@ -116,7 +118,7 @@ class All(StageArgs):
         stages.project_uv(self, self.project)
         stages.fit_pca(self)
         stages.sample_points(self)
-        stages.localize(self)
+        stages.localize(self, figures=self.figures)
 
 
 @dataclass

@@ -156,13 +156,14 @@ def fit_pca(args: StageArgs, n_components: int = 5, global_components: int = 20,
 def auto_point_counts(cap) -> dict[str, int]:
     """Point counts a scene needs: Gaussians scale with the foreground pixels a view can resolve.
 
-    Roughly 4 Gaussians per foreground pixel of the largest view (a full-body view sees about
-    1/3 of its image), capped at the paper's 300 / 10k / 200k.
+    About 2 Gaussians per foreground pixel of the largest view (a full-body view covers about
+    1/3 of its image; the dome sees roughly twice that surface), capped at the paper's
+    300 / 10k / 200k: 128x128 views -> ~11k Gaussians, 1152x1332 -> 200k.
     """
     px = max(c.width * c.height for c in cap.cameras.values())
-    n_g = int(np.clip(4 * px / 3, 5_000, 200_000))
+    n_g = int(np.clip(2 * px / 3, 5_000, 200_000))
     n_c = int(np.clip(n_g // 20, 500, 10_000))
-    n_a = int(np.clip(n_c // 33, 32, 300))
+    n_a = int(np.clip(n_c // 33, 24, 300))
     return {"anchors": n_a, "control": n_c, "gaussians": n_g}
 
 

@@ -3,32 +3,31 @@
 Rules are gsplat 1.5.3's (``RasterizeToPixels3DGSFwd.cu``), per pixel centre p:
 
     sigma = 0.5 (a dx^2 + c dy^2) + b dx dy,   dx = mean - p,  conic = (a, b, c)
-    skip if sigma < 0;  alpha = min(0.999, opacity exp(-sigma));  skip if alpha < 1/255
+    alpha = min(0.999, opacity exp(-sigma));  skip if alpha < 1/255
     next_T = T (1 - alpha); stop (this Gaussian excluded) once next_T <= 1e-4
     color = sum_i c_i alpha_i T_i,   alpha_out = 1 - T_final
 
 Algorithm (see docs/render.md for the rationale):
 
-1. *Binning* (no grad): every visible (camera, Gaussian) instance is sorted by
-   depth, then listed in every tile its pixel bounding box touches; a stable sort
-   by tile id gives per-tile, depth-ordered lists (gsplat's isect + radix sort).
-2. *Candidates* (no grad, chunked): each pixel of a tile is paired with every
-   instance of its tile's list, laid out pixel-major so each pixel's list is a
-   contiguous, depth-ordered segment (a ragged version of a per-tile
-   [pixels, K] matrix, no padding). Alphas, the 1/255 skip and the transmittance
-   (segmented exclusive cumsum of log(1 - alpha), float64) are evaluated for all
-   candidates; the early stop is a mask on that cumsum. Only *contributing*
-   pairs survive, which for opaque surfaces is a small fraction.
-3. *Backward* (custom autograd): recomputes alpha/T for the contributing pairs
-   only and applies gsplat's analytic VJP, scattering into per-instance grads.
+1. *Binning* (no grad): visible (camera, Gaussian) instances, sorted by depth,
+   are listed in every tile their pixel bounding box touches; a stable sort by
+   tile id gives front-to-back lists per tile (gsplat's isect + radix sort).
+2. *Forward* (no grad): tiles with similar list lengths K are batched, padded
+   to a common K, and evaluated as dense [tiles, pixels, K] blocks: sigma is one
+   batched matmul of a per-pixel quadratic basis with per-Gaussian coefficients,
+   transmittance is a cumprod over K (the same sequential product gsplat does),
+   the 1e-4 early stop is a threshold on it, and the colours (plus a constant-1
+   channel giving alpha) are one more batched matmul.
+3. *Backward* (custom autograd.Function): re-evaluates each batch and applies
+   gsplat's analytic VJP with dense ops (suffix sums by cumsum, matmuls for the
+   reductions over pixels), then scatters per tile-list entry into instances.
 
-Memory is bounded by ``max_candidates`` per chunk (chunks are runs of whole
-tiles) plus the saved contributing pair indices (two int64 per pair).
+Peak memory is a few [max_candidates] buffers per batch plus O(tile-list
+entries) saved for backward; nothing per (pixel, Gaussian) pair is kept.
 """
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import torch
@@ -38,14 +37,13 @@ from .projection import ALPHA_THRESHOLD
 
 MAX_ALPHA = 0.999
 TRANSMITTANCE_MIN = 1e-4
-_LOG_T_MIN = math.log(TRANSMITTANCE_MIN)
 
 
 class TileBins(NamedTuple):
-    """Depth-ordered instance lists per touched tile (all integer tensors).
+    """Depth-ordered instance lists per touched tile (all int64 tensors).
 
     Attributes:
-        tile_ids: Tensor  # [A] global tile id (camera-major, then row, column) of each touched tile
+        tile_ids: Tensor  # [A] global tile id (camera-major, then tile row, column)
         list_offsets: Tensor  # [A] start of each tile's list in ``instance_lists``
         list_counts: Tensor  # [A] K_t, number of instances touching the tile
         instance_lists: Tensor  # [Q] instance indices, grouped by tile, front to back
@@ -60,10 +58,10 @@ class TileBins(NamedTuple):
 class CompositeStats(NamedTuple):
     """Work counters of one compositing call (python ints, for logs/benchmarks)."""
 
-    n_tile_pairs: int
-    n_candidates: int
-    n_contributing: int
-    n_chunks: int
+    n_tile_pairs: int  # (tile, instance) intersections
+    n_candidates: int  # padded (pixel, instance) entries evaluated in the forward
+    n_contributing: int  # pairs that passed the 1/255 and T thresholds
+    n_batches: int  # tile batches (Python loop iterations) in the forward
 
 
 def bin_to_tiles(
@@ -91,7 +89,7 @@ def bin_to_tiles(
     tiles_y = (height + tile_size - 1) // tile_size
     mx, my = means2d.detach().unbind(-1)
     rx, ry = radii.to(means2d.dtype).unbind(-1)
-    # A pixel column j is inside the box iff |j + 0.5 - mx| <= rx. Clamping in
+    # Pixel column j is inside the box iff |j + 0.5 - mx| <= rx. Clamping in
     # float first keeps far off-screen coordinates from overflowing int64.
     x_lo = torch.ceil((mx - rx - 0.5).clamp(-1.0, width)).long().clamp_min(0)
     x_hi = torch.floor((mx + rx - 0.5).clamp(-1.0, width)).long().clamp_max(width - 1)
@@ -104,55 +102,67 @@ def bin_to_tiles(
     nty = torch.div(y_hi, tile_size, rounding_mode="floor") - ty_lo + 1
     counts = torch.where(nonempty, ntx * nty, torch.zeros_like(ntx))
 
-    n_inst = means2d.shape[0]
-    inst = torch.repeat_interleave(torch.arange(n_inst, device=device), counts)
-    starts = torch.cumsum(counts, 0) - counts
-    local = torch.arange(inst.shape[0], device=device) - starts[inst]
-    ntx_i = ntx[inst]
-    ty = ty_lo[inst] + torch.div(local, ntx_i, rounding_mode="floor")
-    tx = tx_lo[inst] + local % ntx_i
-    tile = (camera_ids[inst] * tiles_y + ty) * tiles_x + tx
+    inst = torch.repeat_interleave(torch.arange(means2d.shape[0], device=device), counts)
+    local = torch.arange(inst.shape[0], device=device) - (torch.cumsum(counts, 0) - counts).index_select(0, inst)
+    ntx_i = ntx.index_select(0, inst)
+    row = torch.div(local, ntx_i, rounding_mode="floor")
+    tx = tx_lo.index_select(0, inst) + local - row * ntx_i
+    ty = ty_lo.index_select(0, inst) + row
+    tile = (camera_ids.index_select(0, inst) * tiles_y + ty) * tiles_x + tx
+    if (int(camera_ids.max()) + 1 if camera_ids.numel() else 0) * tiles_y * tiles_x < 2**31:
+        tile = tile.int()  # int32 keys sort ~2x faster
     # Stable sort keeps the front-to-back instance order inside each tile.
     tile_sorted, perm = torch.sort(tile, stable=True)
     tile_ids, list_counts = torch.unique_consecutive(tile_sorted, return_counts=True)
     list_offsets = torch.cumsum(list_counts, 0) - list_counts
-    return TileBins(tile_ids, list_offsets, list_counts, inst[perm])
+    return TileBins(tile_ids.long(), list_offsets, list_counts, inst.index_select(0, perm))
 
 
-def _chunk_bounds(cost: Tensor, budget: int) -> list[tuple[int, int]]:
-    """Split a run of tiles into consecutive ranges of at most ``budget`` cost
-    (a single tile above budget gets its own range)."""
-    n = int(cost.shape[0])
-    if n == 0:
-        return []
-    csum = torch.cumsum(cost, 0)
-    total = int(csum[-1])
-    if total <= budget:
-        return [(0, n)]
-    bounds = []
-    start = 0
-    base = 0
-    csum_list = csum.tolist()
-    while start < n:
-        # Largest end with cumulative cost - base <= budget, at least one tile.
-        end = int(torch.searchsorted(csum, base + budget, right=True))
-        end = max(end, start + 1)
-        bounds.append((start, end))
-        base = csum_list[end - 1]
-        start = end
-    return bounds
+def _tile_batches(
+    bins: TileBins, tile_area: int, max_candidates: int, max_padding: float = 0.1, min_batch: int = 1 << 16
+) -> list[tuple[Tensor, int]]:
+    """Group tiles with similar list lengths into dense batches of bounded size.
 
-
-def _tile_pixels(
-    tile_ids: Tensor, width: int, height: int, tile_size: int
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Enumerate the in-image pixels of tiles, row-major inside each tile.
+    Tiles are visited by increasing list length K and cut into runs; a run's
+    padded size is n_tiles * tile_area * max K. A run is closed when adding the
+    next length would exceed ``max_candidates`` or waste more than
+    ``max_padding`` on padding (small runs may waste more: Python overhead per
+    batch costs more than padding a few thousand entries).
 
     Returns:
-        pix_tile: Tensor  # [P] index (into ``tile_ids``) of each pixel's tile
-        pix_global: Tensor  # [P] global pixel id  camera * H * W + row * W + col
-        pix_center: Tensor  # [2, P] float pixel centre (x + 0.5, y + 0.5)
-        tile_npix: Tensor  # [T] pixels per tile (border tiles are clipped)
+        list of (tile indices [nb] into ``bins``, padded K) pairs
+    """
+    counts, order = torch.sort(bins.list_counts)
+    lengths, n_tiles = torch.unique_consecutive(counts, return_counts=True)
+    batches: list[tuple[Tensor, int]] = []
+    start = n_open = real_open = k_open = 0  # open run: order[start : start + n_open]
+    for k, n in zip(lengths.tolist(), n_tiles.tolist()):
+        cap = max(1, max_candidates // (tile_area * k))  # tiles per batch at this K
+        while n > 0:
+            take = min(n, cap - n_open)
+            padded = (n_open + take) * k
+            wasteful = padded > (1.0 + max_padding) * (real_open + take * k) and padded * tile_area > min_batch
+            if n_open and (take <= 0 or wasteful):
+                batches.append((order[start : start + n_open], k_open))
+                start, n_open, real_open = start + n_open, 0, 0
+                continue
+            n_open, real_open, k_open, n = n_open + take, real_open + take * k, k, n - take
+            if n_open >= cap:
+                batches.append((order[start : start + n_open], k_open))
+                start, n_open, real_open = start + n_open, 0, 0
+    if n_open:
+        batches.append((order[start : start + n_open], k_open))
+    return batches
+
+
+def _tile_geometry(
+    tile_ids: Tensor, width: int, height: int, tile_size: int, junk: int, dtype: torch.dtype
+) -> tuple[Tensor, Tensor]:
+    """Tile centres and global ids of their pixels (row-major inside the tile).
+
+    Returns:
+        centers: Tensor  # [nb, 2] tile centre (x, y) in pixels
+        pix_ids: Tensor  # [nb, P] camera * H * W + row * W + col; ``junk`` outside the image
     """
     device = tile_ids.device
     tiles_x = (width + tile_size - 1) // tile_size
@@ -161,234 +171,215 @@ def _tile_pixels(
     rem = tile_ids - cam * (tiles_x * tiles_y)
     x0 = (rem % tiles_x) * tile_size
     y0 = torch.div(rem, tiles_x, rounding_mode="floor") * tile_size
-    tw = (width - x0).clamp_max(tile_size)
-    th = (height - y0).clamp_max(tile_size)
-    tile_npix = tw * th
-    pix_tile = torch.repeat_interleave(torch.arange(tile_ids.shape[0], device=device), tile_npix)
-    local = torch.arange(pix_tile.shape[0], device=device) - (torch.cumsum(tile_npix, 0) - tile_npix)[pix_tile]
-    tw_p = tw[pix_tile]
-    px = x0[pix_tile] + local % tw_p
-    py = y0[pix_tile] + torch.div(local, tw_p, rounding_mode="floor")
-    pix_global = (cam[pix_tile] * height + py) * width + px
-    pix_center = torch.stack([px, py]) + 0.5
-    return pix_tile, pix_global, pix_center, tile_npix
+    offs = torch.arange(tile_size, device=device)
+    col = x0[:, None, None] + offs[None, None, :]  # [nb, 1, ts]
+    row = y0[:, None, None] + offs[None, :, None]  # [nb, ts, 1]
+    pix = (cam[:, None, None] * height + row) * width + col
+    inside = (col < width) & (row < height)
+    pix_ids = torch.where(inside, pix, torch.full_like(pix, junk)).reshape(tile_ids.shape[0], -1)
+    centers = torch.stack([x0, y0], dim=1).to(dtype) + 0.5 * tile_size
+    return centers, pix_ids
 
 
-def _gaussian_alpha(params: Tensor, center: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """gsplat's per-pair Gaussian falloff.
-
-    Args:
-        params: Tensor  # [6, M] rows (mean_x, mean_y, conic_a, conic_b, conic_c, opacity)
-        center: Tensor  # [2, M] pixel centres (x, y)
+def _pixel_basis(tile_size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """Quadratic basis (1, u, v, u^2, uv, v^2) of pixel centres relative to the tile centre.
 
     Returns:
-        alpha: Tensor  # [M] min(0.999, opacity exp(-sigma))
-        sigma: Tensor  # [M]
-        vis: Tensor  # [M] exp(-sigma)
-        delta: Tensor  # [2, M] mean - pixel centre
+        Tensor  # [P, 6], P = tile_size^2, row-major pixel order
     """
-    delta = params[:2] - center
-    dx, dy = delta[0], delta[1]
-    sigma = 0.5 * (params[2] * dx * dx + params[4] * dy * dy) + params[3] * dx * dy
-    vis = torch.exp(-sigma)
-    alpha = (params[5] * vis).clamp_max(MAX_ALPHA)
-    return alpha, sigma, vis, delta
+    offs = torch.arange(tile_size, device=device, dtype=dtype) + 0.5 - 0.5 * tile_size
+    v, u = torch.meshgrid(offs, offs, indexing="ij")
+    u, v = u.reshape(-1), v.reshape(-1)
+    return torch.stack([torch.ones_like(u), u, v, u * u, u * v, v * v], dim=1)
 
 
-def _segment_starts(seg_ids: Tensor) -> Tensor:
-    """Index of the first element of each element's run in a sorted id array.
+class _Batch(NamedTuple):
+    """Dense evaluation of one tile batch; K = padded list length, P = pixels per tile."""
+
+    pos: Tensor  # [nb * K] index into the tile-list order (padding -> 0)
+    in_list: Tensor  # [nb, K] bool, False on padding
+    pix_ids: Tensor  # [nb * P] global pixel ids (``junk`` outside the image)
+    local: Tensor  # [6, nb, K] (dx, dy, a, b, c, opacity): mean - tile centre, conic, opacity
+    alpha: Tensor  # [nb, P, K] min(0.999, o exp(-sigma)), 0 below 1/255
+    one_minus: Tensor  # [nb, P, K] 1 - alpha
+    trans: Tensor  # [nb, P, K] T in front of each entry, 0 from the early stop on
+    weight: Tensor  # [nb, P, K] alpha T, 0 where skipped, stopped or outside the image
+
+
+def _float_below(value: float, dtype: torch.dtype) -> float:
+    """Largest ``dtype`` number below ``value`` (turns ``x >= v`` into ``x > v'``)."""
+    v = torch.tensor(value, dtype=dtype)
+    return float(torch.nextafter(v, torch.zeros_like(v)))
+
+
+def _evaluate_batch(
+    params_q: Tensor, bins: TileBins, tiles: Tensor, k_pad: int, basis: Tensor,
+    width: int, height: int, tile_size: int, junk: int,
+) -> _Batch:
+    """Alphas, transmittance and weights of every (pixel, list entry) of a tile batch.
 
     Args:
-        seg_ids: Tensor  # [M] non-decreasing segment ids
-
-    Returns:
-        Tensor  # [M] int64 position of the segment start for each element
+        params_q: Tensor  # [Q, 6] (mean x, mean y, conic a, b, c, opacity) in tile-list order
+        tiles: Tensor  # [nb] tile indices into ``bins``; k_pad >= their list lengths
+        basis: Tensor  # [P, 6] from _pixel_basis
     """
-    m = seg_ids.shape[0]
-    pos = torch.arange(m, device=seg_ids.device)
-    is_start = torch.ones(m, dtype=torch.bool, device=seg_ids.device)
-    is_start[1:] = seg_ids[1:] != seg_ids[:-1]
-    return torch.cummax(torch.where(is_start, pos, torch.zeros_like(pos)), 0).values
+    n_tiles = tiles.shape[0]
+    ks = torch.arange(k_pad, device=tiles.device)
+    in_list = ks[None, :] < bins.list_counts[tiles, None]  # [nb, K]
+    pos = torch.where(in_list, bins.list_offsets[tiles, None] + ks[None, :], torch.zeros_like(ks[None, :]))
+    pos = pos.reshape(-1)
+    p = params_q.index_select(0, pos).view(n_tiles, k_pad, 6).unbind(-1)
+    centers, pix_ids = _tile_geometry(bins.tile_ids[tiles], width, height, tile_size, junk, params_q.dtype)
+    # sigma(u) = sigma(tile centre) - g.u + 0.5 u^T Q u is exact for the quadratic;
+    # expanding around the tile centre (|u| <= ts/2) keeps cancellation small, and
+    # turns the [P, K] evaluation into one batched matmul instead of ~10 passes.
+    dx = p[0] - centers[:, 0, None]
+    dy = p[1] - centers[:, 1, None]
+    a, b, c = p[2], p[3], p[4]
+    gx = a * dx + b * dy
+    gy = b * dx + c * dy
+    neg_coef = torch.stack([-0.5 * (gx * dx + gy * dy), gx, gy, -0.5 * a, -b, -0.5 * c], dim=1)
+    opacity = torch.where(in_list, p[5], torch.zeros_like(p[5]))  # padding never contributes
+    alpha = torch.matmul(basis, neg_coef).exp_().mul_(opacity[:, None, :]).clamp_max_(MAX_ALPHA)
+    # threshold_ keeps x > v: with v just below 1/255 it is gsplat's "skip alpha < 1/255",
+    # and it is several times faster than a masked_fill.
+    torch.nn.functional.threshold_(alpha, _float_below(ALPHA_THRESHOLD, alpha.dtype), 0.0)
+    one_minus = 1.0 - alpha
+    trans = torch.cumprod(one_minus, dim=-1)  # gsplat's sequential next_T = T * (1 - alpha)
+    # next_T <= 1e-4 stops the pixel and T only decreases: zeroing T from there on
+    # removes the stopping Gaussian and everything behind it.
+    torch.nn.functional.threshold_(trans, TRANSMITTANCE_MIN, 0.0)
+    trans.div_(one_minus)  # inclusive -> exclusive transmittance (1 - alpha >= 0.001)
+    weight = alpha * trans
+    outside = (pix_ids == junk).view(n_tiles, -1, 1)
+    if bool(outside.any()):
+        weight.masked_fill_(outside, 0.0)
+    local = torch.stack([dx, dy, a, b, c, opacity])
+    return _Batch(pos, in_list, pix_ids.reshape(-1), local, alpha, one_minus, trans, weight)
 
 
-def _composite_chunk_forward(
-    params_t: Tensor,
-    bins: TileBins,
-    tiles: tuple[int, int],
-    width: int,
-    height: int,
-    tile_size: int,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, int]:
-    """Evaluate all candidates of a run of tiles and keep the contributing pairs.
+def _batch_vjp(batch: _Batch, colors_q: Tensor, g_ext: Tensor, basis: Tensor) -> Tensor:
+    """gsplat's compositing VJP for one evaluated batch (consumes ``batch``'s buffers).
 
     Args:
-        params_t: Tensor  # [6, V] (mean_x, mean_y, conic a, b, c, opacity) per instance
-        bins: tile lists; ``tiles`` = (start, end) range into them
+        colors_q: Tensor  # [Q, D + 1] features in tile-list order, last column = 1 (alpha)
+        g_ext: Tensor  # [n_pix + 1, D + 1] dL/d(features, alpha) per pixel, junk row = 0
+        basis: Tensor  # [P, 6]
 
     Returns:
-        inst: Tensor  # [Mc] instance of each contributing pair, pixels grouped, front to back
-        pix: Tensor  # [Mc] global pixel id of each contributing pair
-        weight: Tensor  # [Mc] alpha_i T_i (params dtype)
-        log_t: Tensor  # [Mc] log(1 - alpha_i) (float64), summed per pixel for T_final
-        n_candidates: int
+        Tensor  # [nb * K, 6 + D] grads of (mean x, mean y, conic a, b, c, opacity, features)
     """
-    a, b = tiles
-    tile_ids = bins.tile_ids[a:b]
-    counts = bins.list_counts[a:b]
-    offsets = bins.list_offsets[a:b]
-    pix_tile, pix_global, pix_center, _ = _tile_pixels(tile_ids, width, height, tile_size)
-    pix_k = counts[pix_tile]  # [P] list length of each pixel
-    cand_start = torch.cumsum(pix_k, 0) - pix_k  # [P] start of each pixel's segment
-    cand_pix = torch.repeat_interleave(torch.arange(pix_k.shape[0], device=pix_k.device), pix_k)
-    m = cand_pix.shape[0]
-    # Position in the tile list = candidate index - segment start + list offset.
-    shift = (offsets[pix_tile] - cand_start)[cand_pix]
-    inst = bins.instance_lists[torch.arange(m, device=pix_k.device) + shift]
+    n_tiles, n_pix, k_pad = batch.weight.shape
+    col_b = colors_q.index_select(0, batch.pos).view(n_tiles, k_pad, -1)
+    g_b = g_ext.index_select(0, batch.pix_ids).view(n_tiles, n_pix, -1)
+    # alpha_out = sum_i w_i is just one more feature (constant 1), so the
+    # alpha-output gradient rides along in g . c.
+    g_dot_c = torch.bmm(g_b, col_b.transpose(1, 2))  # [nb, P, K]
+    # Fused in-place passes; the batch's dense buffers dominate the runtime.
+    # acc_i = -(what the Gaussians behind entry i add) = cumsum_i - total.
+    acc = batch.weight * g_dot_c
+    total = acc.sum(-1, keepdim=True)
+    acc.cumsum_(-1).sub_(total)
+    # dL/dalpha_i = T_i g.c_i - behind_i / (1 - alpha_i); zero after the stop
+    # because both T_i and behind_i are zero there.
+    g_alpha = acc.div_(batch.one_minus).addcmul_(batch.trans, g_dot_c)
+    # d alpha / d(-sigma) = alpha, except where min(0.999, .) clamps (gsplat: no
+    # gradient) or the entry was skipped (alpha = 0): threshold(-alpha) zeroes both.
+    neg_alpha = torch.nn.functional.threshold_(batch.alpha.neg_(), -MAX_ALPHA, 0.0)
+    g_sigma = g_alpha.mul_(neg_alpha)  # dL/dsigma = -alpha dL/dalpha
+    g_coef = torch.matmul(basis.t(), g_sigma).neg_()  # [nb, 6, K] grads of neg_coef
+    # g_b^T @ weight keeps the big operand untransposed (~5x faster bmm on CPU).
+    g_feat = torch.bmm(g_b.transpose(1, 2), batch.weight).transpose(1, 2)[..., :-1]  # [nb, K, D]
 
-    alpha, sigma, _, _ = _gaussian_alpha(
-        params_t.index_select(1, inst), pix_center.to(params_t.dtype).index_select(1, cand_pix)
-    )
-    keep = (sigma >= 0) & (alpha >= ALPHA_THRESHOLD)
-    # log-space transmittance in float64: a global cumsum minus the value at
-    # each pixel's segment start is a segmented cumsum without Python loops.
-    log1m = torch.where(keep, torch.log1p(-alpha.double()), torch.zeros((), dtype=torch.float64))
-    csum = torch.cumsum(log1m, 0)
-    seg_first = cand_start[cand_pix]
-    log_t_incl = csum - (csum[seg_first] - log1m[seg_first])
-    # next_T <= 1e-4 stops the pixel; T only decreases, so the mask is a prefix.
-    keep &= log_t_incl > _LOG_T_MIN
-    idx = keep.nonzero().squeeze(1)
-    log_t_c = log1m[idx]
-    weight = alpha[idx] * torch.exp(log_t_incl[idx] - log_t_c).to(alpha.dtype)
-    return inst[idx], pix_global[cand_pix[idx]], weight, log_t_c, m
+    # Chain rule through neg_coef = (-sigma0, gx, gy, -a/2, -b, -c/2).
+    dx, dy, a, b, c, opacity = batch.local
+    gx = a * dx + b * dy
+    gy = b * dx + c * dy
+    g_s0 = -g_coef[:, 0]
+    g_gx, g_gy = g_coef[:, 1], g_coef[:, 2]
+    g_dx = g_s0 * gx + g_gx * a + g_gy * b
+    g_dy = g_s0 * gy + g_gx * b + g_gy * c
+    g_a = g_s0 * 0.5 * dx * dx + g_gx * dx - 0.5 * g_coef[:, 3]
+    g_b2 = g_s0 * dx * dy + g_gx * dy + g_gy * dx - g_coef[:, 4]
+    g_c = g_s0 * 0.5 * dy * dy + g_gy * dy - 0.5 * g_coef[:, 5]
+    # sum_p dL/dalpha * exp(-sigma) = sum_p dL/d(-sigma) / opacity (alpha = o exp(-sigma)).
+    g_opacity = g_s0.neg() / torch.where(opacity > 0, opacity, torch.ones_like(opacity))
+    g_geo = torch.stack([g_dx, g_dy, g_a, g_b2, g_c, g_opacity], dim=-1)  # [nb, K, 6]
+    return torch.cat([g_geo, g_feat], dim=-1).reshape(n_tiles * k_pad, -1)
 
 
 class _Composite(torch.autograd.Function):
-    """Autograd wrapper: forward keeps only contributing pairs, backward is analytic."""
+    """Batched dense forward; backward re-evaluates each batch (no per-pair storage)."""
 
     @staticmethod
-    def forward(ctx, params_t, colors, bins, width, height, n_cameras, tile_size, max_candidates, stats_out):
+    def forward(
+        ctx, params, colors, bins, width, height, n_cameras, tile_size, max_candidates, cache_candidates, stats_out
+    ):
         n_pix = n_cameras * height * width
-        dtype, device = params_t.dtype, params_t.device
-        out_color = torch.zeros(n_pix, colors.shape[1], dtype=dtype, device=device)
-        log_t_final = torch.zeros(n_pix, dtype=torch.float64, device=device)
-        npix_tile = torch.full_like(bins.list_counts, tile_size * tile_size)
-        chunks = _chunk_bounds(bins.list_counts * npix_tile, max_candidates)
-        saved_inst, saved_pix, chunk_sizes = [], [], []
-        n_cand = 0
-        for chunk in chunks:
-            inst, pix, weight, log1m, m = _composite_chunk_forward(
-                params_t, bins, chunk, width, height, tile_size
-            )
-            n_cand += m
-            out_color.index_add_(0, pix, weight[:, None] * colors.index_select(0, inst))
-            log_t_final.index_add_(0, pix, log1m)
-            saved_inst.append(inst)
-            saved_pix.append(pix)
-            chunk_sizes.append(int(inst.shape[0]))
-        t_final = torch.exp(log_t_final)
-        inst = torch.cat(saved_inst) if saved_inst else torch.zeros(0, dtype=torch.long, device=device)
-        pix = torch.cat(saved_pix) if saved_pix else torch.zeros(0, dtype=torch.long, device=device)
-        ctx.save_for_backward(params_t, colors, inst, pix, t_final)
-        # Forward chunks hold whole pixels and are bounded, so backward reuses them.
-        ctx.chunk_sizes = chunk_sizes
-        ctx.width, ctx.height = width, height
+        dtype, device = params.dtype, params.device
+        # One extra "junk" row absorbs writes of tile pixels outside the image.
+        out = torch.zeros(n_pix + 1, colors.shape[1] + 1, dtype=dtype, device=device)
+        params_q = params.index_select(0, bins.instance_lists)
+        colors_q = _with_ones(colors.index_select(0, bins.instance_lists))
+        basis = _pixel_basis(tile_size, dtype, device)
+        batches = _tile_batches(bins, tile_size * tile_size, max_candidates)
+        n_cand = n_contrib = 0
+        cache: list[_Batch | None] = []
+        for tiles, k_pad in batches:
+            batch = _evaluate_batch(params_q, bins, tiles, k_pad, basis, width, height, tile_size, n_pix)
+            # Keep evaluated batches for backward while they fit the cache budget;
+            # the rest is recomputed there, so memory stays bounded either way.
+            fits = n_cand + batch.weight.numel() <= cache_candidates
+            cache.append(batch if fits else None)
+            col_b = colors_q.index_select(0, batch.pos).view(tiles.shape[0], k_pad, -1)
+            # Every pixel belongs to exactly one tile, so plain row writes suffice.
+            # col^T @ weight^T keeps the big operand on the right: ~4x faster CPU bmm.
+            color = torch.bmm(col_b.transpose(1, 2), batch.weight.transpose(1, 2)).transpose(1, 2)
+            out.index_copy_(0, batch.pix_ids, color.flatten(0, 1))
+            n_cand += batch.weight.numel()
+            n_contrib += int(batch.weight.bool().sum())  # weights are >= 0
+        ctx.save_for_backward(params_q, colors_q)
+        ctx.cache = cache
+        ctx.setup = (bins, batches, basis, width, height, tile_size, n_pix, params.shape[0])
         if stats_out is not None:
-            stats_out.append(CompositeStats(int(bins.instance_lists.shape[0]), n_cand, int(inst.shape[0]), len(chunks)))
-        alpha_out = (1.0 - t_final).to(dtype)
-        return out_color, alpha_out
+            stats_out.append(CompositeStats(int(bins.instance_lists.shape[0]), n_cand, n_contrib, len(batches)))
+        # alpha_out = sum_i alpha_i T_i = 1 - T_final (telescoping sum).
+        return out[:n_pix, :-1], out[:n_pix, -1]
 
     @staticmethod
     def backward(ctx, g_color, g_alpha):
-        params_t, colors, inst_all, pix_all, t_final = ctx.saved_tensors
-        n_inst, n_ch = colors.shape
-        grads = torch.zeros(n_inst, 6 + n_ch, dtype=torch.float64, device=colors.device)
-        if g_color is None:
-            g_color = torch.zeros(t_final.shape[0], n_ch, dtype=colors.dtype, device=colors.device)
-        g_color = g_color.contiguous()
-        # The alpha-output term of dL/dalpha_i is g_A * T_final / (1 - alpha_i).
-        g_final = (g_alpha.double() * t_final) if g_alpha is not None else torch.zeros_like(t_final)
-        start = 0
-        for size in ctx.chunk_sizes:
-            end = start + size
-            grads.index_add_(0, inst_all[start:end], _backward_pairs(
-                params_t, colors, inst_all[start:end], pix_all[start:end], g_color, g_final,
-                ctx.width, ctx.height,
-            ))
-            start = end
-        g_params = grads[:, :6].t().to(params_t.dtype)
-        g_colors = grads[:, 6:].to(colors.dtype)
-        return g_params, g_colors, None, None, None, None, None, None, None
+        params_q, colors_q = ctx.saved_tensors
+        bins, batches, basis, width, height, tile_size, n_pix, n_inst = ctx.setup
+        n_q, n_ext = colors_q.shape
+        g_ext = torch.zeros(n_pix + 1, n_ext, dtype=colors_q.dtype, device=colors_q.device)
+        if g_color is not None:
+            g_ext[:n_pix, :-1] = g_color
+        if g_alpha is not None:
+            g_ext[:n_pix, -1] = g_alpha
+        # Per tile-list entry grads; padding entries land in the junk row n_q.
+        g_q = torch.zeros(n_q + 1, 6 + n_ext - 1, dtype=colors_q.dtype, device=colors_q.device)
+        cache, ctx.cache = ctx.cache, None  # cached buffers are consumed (mutated) below
+        for i, (tiles, k_pad) in enumerate(batches):
+            batch = cache[i] if cache is not None and cache[i] is not None else _evaluate_batch(
+                params_q, bins, tiles, k_pad, basis, width, height, tile_size, n_pix
+            )
+            dest = torch.where(batch.in_list.reshape(-1), batch.pos, torch.full_like(batch.pos, n_q))
+            g_q.index_copy_(0, dest, _batch_vjp(batch, colors_q, g_ext, basis))
+        grads = torch.zeros(n_inst, g_q.shape[1], dtype=g_q.dtype, device=g_q.device)
+        grads.index_add_(0, bins.instance_lists, g_q[:n_q])
+        return grads[:, :6], grads[:, 6:], None, None, None, None, None, None, None, None
 
 
-def _backward_pairs(params_t, colors, inst, pix, g_color, g_final, width, height) -> Tensor:
-    """gsplat's compositing VJP for a run of whole pixel segments.
-
-    Args:
-        params_t: Tensor  # [6, V]; colors: Tensor  # [V, D]
-        inst, pix: Tensor  # [Mc] contributing pairs (pixel-grouped, front to back)
-        g_color: Tensor  # [P, D] dL/d(accumulated colour)
-        g_final: Tensor  # [P] float64 dL/dA * T_final
-
-    Returns:
-        Tensor  # [Mc, 6 + D] float64 per-pair grads of (mean2d, conic, opacity, colour)
-    """
-    pix_center = _pixel_centers(pix, width, height)
-    p = params_t.index_select(1, inst)
-    alpha, _, vis, delta = _gaussian_alpha(p, pix_center.to(p.dtype))
-    alpha = alpha.double()
-    log1m = torch.log1p(-alpha)
-    first = _segment_starts(pix)
-    csum = torch.cumsum(log1m, 0)
-    excl = csum - log1m
-    trans = torch.exp(excl - excl[first])  # T_i before pair i
-    weight = alpha * trans
-    g_c = g_color.index_select(0, pix)  # [Mc, D]
-    c = colors.index_select(0, inst)
-    gdotc = (c * g_c).sum(-1).double()
-    v = weight * gdotc
-    vsum = torch.cumsum(v, 0)
-    seg_total = torch.zeros(g_color.shape[0], dtype=torch.float64, device=v.device).index_add_(0, pix, v)
-    # Exclusive suffix sum within the pixel: what later Gaussians add.
-    suffix = seg_total[pix] - (vsum - (vsum[first] - v[first]))
-    g_alpha = trans * gdotc + (g_final[pix] - suffix) / (1.0 - alpha)
-    # min(0.999, o * vis) has no gradient where it clamps (gsplat: o*vis <= 0.999).
-    unclamped = (p[5] * vis <= MAX_ALPHA).double()
-    g_alpha = g_alpha * unclamped
-    g_sigma = -g_alpha * alpha
-    dx, dy = delta[0].double(), delta[1].double()
-    a, b, cc = p[2].double(), p[3].double(), p[4].double()
-    return torch.cat(
-        [
-            torch.stack(
-                [
-                    g_sigma * (a * dx + b * dy),
-                    g_sigma * (b * dx + cc * dy),
-                    g_sigma * 0.5 * dx * dx,
-                    g_sigma * dx * dy,
-                    g_sigma * 0.5 * dy * dy,
-                    g_alpha * vis.double(),
-                ],
-                dim=1,
-            ),
-            weight[:, None] * g_c.double(),
-        ],
-        dim=1,
-    )
-
-
-def _pixel_centers(pix: Tensor, width: int, height: int) -> Tensor:
-    """Pixel centres of global pixel ids.
+def _with_ones(features: Tensor) -> Tensor:
+    """Append a constant-1 column so the accumulated alpha comes out of the same matmul.
 
     Args:
-        pix: Tensor  # [M] camera * H * W + row * W + col
+        features: Tensor  # [Q, D]
 
     Returns:
-        Tensor  # [2, M] float64 (col + 0.5, row + 0.5)
+        Tensor  # [Q, D + 1]
     """
-    col = pix % width
-    row = torch.div(pix, width, rounding_mode="floor") % height
-    return torch.stack([col, row]).double() + 0.5
+    return torch.cat([features, torch.ones_like(features[:, :1])], dim=1)
 
 
 def composite(
@@ -402,40 +393,49 @@ def composite(
     n_cameras: int,
     width: int,
     height: int,
-    tile_size: int = 8,
-    max_candidates: int = 1 << 21,
+    tile_size: int = 4,
+    max_candidates: int = 1 << 19,
+    cache_candidates: int = 1 << 24,
     stats_out: list | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Alpha-composite projected Gaussian instances into C images (differentiable).
 
     Args:
         means2d: Tensor  # [V, 2] pixel coordinates of each (camera, Gaussian) instance
-        conics: Tensor  # [V, 3] inverse 2D covariance (a, b, c)
+        conics: Tensor  # [V, 3] inverse 2D covariance (a, b, c), positive definite
         opacities: Tensor  # [V] in [0, 1]
         colors: Tensor  # [V, D] per-instance features (RGB, depth, ...)
-        depths: Tensor  # [V] camera-frame z used for front-to-back ordering
-        radii: Tensor  # [V, 2] int half extents of the footprint in pixels
+        depths: Tensor  # [V] camera-frame z, only used for front-to-back ordering
+        radii: Tensor  # [V, 2] int half extents (x, y) of the footprint in pixels
         camera_ids: Tensor  # [V] int64 image each instance belongs to
         n_cameras: number of images C
         width, height: image size in pixels
-        tile_size: tile edge in pixels (8 is a good CPU trade-off, see docs)
-        max_candidates: bound on (pixel, Gaussian) candidates evaluated at once
+        tile_size: tile edge in pixels (4 is the CPU sweet spot, see docs/render.md)
+        max_candidates: bound on padded (pixel, Gaussian) entries evaluated at once
+        cache_candidates: forward batches up to this many entries in total are kept
+            for backward (4 buffers of this size, 256 MB in float32 by default);
+            the rest is recomputed in backward
         stats_out: if a list is given, a CompositeStats is appended to it
 
     Returns:
-        colors: Tensor  # [C, H, W, D] premultiplied accumulated features
+        colors: Tensor  # [C, H, W, D] accumulated features (no background)
         alphas: Tensor  # [C, H, W, 1] 1 - final transmittance
     """
     n_ch = colors.shape[-1]
     with torch.no_grad():
         order = torch.argsort(depths.detach(), stable=True)
-    means2d, conics, opacities = means2d[order], conics[order], opacities[order]
-    colors, radii, camera_ids = colors[order], radii[order], camera_ids[order]
-    with torch.no_grad():
-        bins = bin_to_tiles(means2d, radii, camera_ids, width, height, tile_size)
-    params_t = torch.cat([means2d, conics, opacities[:, None]], dim=1).t().contiguous()
+        bins = bin_to_tiles(
+            means2d.detach().index_select(0, order), radii.index_select(0, order),
+            camera_ids.index_select(0, order), width, height, tile_size,
+        )
+        # Lists refer to the caller's instance indices; no need to permute params.
+        bins = bins._replace(instance_lists=order.index_select(0, bins.instance_lists))
+    params = torch.cat([means2d, conics, opacities[:, None]], dim=1)  # [V, 6]
+    if not (torch.is_grad_enabled() and (params.requires_grad or colors.requires_grad)):
+        cache_candidates = 0  # no backward will come: do not hold buffers
     out_color, out_alpha = _Composite.apply(
-        params_t, colors.contiguous(), bins, width, height, n_cameras, tile_size, max_candidates, stats_out
+        params, colors.contiguous(), bins, width, height, n_cameras, tile_size,
+        max_candidates, cache_candidates, stats_out,
     )
     return (
         out_color.reshape(n_cameras, height, width, n_ch),

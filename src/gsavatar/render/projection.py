@@ -14,7 +14,6 @@ Conventions:
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import torch
@@ -224,9 +223,3 @@ def camera_centers(viewmats: Tensor) -> Tensor:
     # world_from_cam translation = -R^T t for a rigid transform.
     return -(rot_cw.transpose(-1, -2) @ t_cw[..., None]).squeeze(-1)
 
-
-def bounding_extent(opacity: float) -> float:
-    """Scalar version of the opacity-aware extent (std-devs), for docs and tests."""
-    if opacity < ALPHA_THRESHOLD:
-        return 0.0
-    return min(MAX_EXTEND, math.sqrt(2.0 * math.log(opacity / ALPHA_THRESHOLD)))

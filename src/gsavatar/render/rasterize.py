@@ -78,6 +78,8 @@ def _validate(
         _check_shape("backgrounds", backgrounds, (c, d), f"[C={c}, D={d}]")
     if int(width) <= 0 or int(height) <= 0:
         raise ValueError(f"width and height must be positive, got {width}x{height}")
+    if not means.is_floating_point():
+        raise ValueError(f"means must be a floating point tensor, got {means.dtype}")
     tensors = {"means": means, "quats": quats, "scales": scales, "opacities": opacities,
                "colors": colors, "viewmats": viewmats, "Ks": Ks}
     if backgrounds is not None:
@@ -85,8 +87,8 @@ def _validate(
     for name, t in tensors.items():
         if t.device != means.device:
             raise ValueError(f"{name} must be on {means.device} like means, got {t.device}")
-        if not t.is_floating_point():
-            raise ValueError(f"{name} must be a floating point tensor, got {t.dtype}")
+        if t.dtype != means.dtype:
+            raise ValueError(f"{name} must have the dtype of means ({means.dtype}), got {t.dtype}")
     return n, c, d
 
 
@@ -101,14 +103,15 @@ def rasterize(
     width: int,
     height: int,
     backgrounds: Tensor | None = None,
+    *,
     sh_degree: int | None = None,
     backend: Backend = "auto",
     render_depth: bool = False,
     near_plane: float = 0.01,
     far_plane: float = 1e10,
     eps2d: float = 0.3,
-    tile_size: int = 8,
-    max_candidates: int = 1 << 21,
+    tile_size: int = 4,
+    max_candidates: int = 1 << 19,
 ) -> RenderOutput:
     """Render Gaussians with gsplat's classic 3DGS rules.
 
@@ -143,15 +146,17 @@ def rasterize(
     if backend == "gsplat":
         return _rasterize_gsplat(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-            backgrounds, sh_degree, render_depth, near_plane, far_plane, eps2d, tile_size,
+            backgrounds, sh_degree, render_depth, near_plane, far_plane, eps2d,
         )
 
     proj = project_gaussians(
         means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d
     )
     cam_ids, gs_ids = proj.valid.nonzero(as_tuple=True)  # [V], [V]
-    means2d = proj.means2d[cam_ids, gs_ids]
-    depths = proj.depths[cam_ids, gs_ids]
+    # Flat index_select (not advanced indexing): its backward is a fast index_add.
+    flat = cam_ids * n + gs_ids
+    means2d = proj.means2d.reshape(-1, 2).index_select(0, flat)
+    depths = proj.depths.reshape(-1).index_select(0, flat)
     if sh_degree is None:
         feats = colors.index_select(0, gs_ids)
     else:
@@ -163,11 +168,11 @@ def rasterize(
     stats: list = []
     img, alphas = composite(
         means2d,
-        proj.conics[cam_ids, gs_ids],
+        proj.conics.reshape(-1, 3).index_select(0, flat),
         opacities.index_select(0, gs_ids),
         feats,
         depths,
-        proj.radii[cam_ids, gs_ids],
+        proj.radii.reshape(-1, 2).index_select(0, flat),
         cam_ids,
         c,
         width,
@@ -198,9 +203,13 @@ def rasterize(
 
 def _rasterize_gsplat(
     means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-    backgrounds, sh_degree, render_depth, near_plane, far_plane, eps2d, tile_size,
+    backgrounds, sh_degree, render_depth, near_plane, far_plane, eps2d,
 ) -> RenderOutput:
-    """Delegate to gsplat's fused CUDA rasteriser (same conventions)."""
+    """Delegate to gsplat's fused CUDA rasteriser (same conventions, its 16 px tiles).
+
+    Unlike the torch path, gsplat normalises quaternions without an epsilon:
+    an exactly zero quaternion yields NaN there.
+    """
     if means.device.type != "cuda":
         raise ValueError(f"backend='gsplat' needs CUDA tensors, got means on {means.device}")
     from gsplat import rasterization
@@ -208,7 +217,7 @@ def _rasterize_gsplat(
     img, alphas, meta = rasterization(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height,
         near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree,
-        tile_size=max(int(tile_size), 16), backgrounds=backgrounds,
+        backgrounds=backgrounds,
         render_mode="RGB+ED" if render_depth else "RGB",
     )
     depth_img = None

@@ -137,10 +137,16 @@ def _init_worker(job: _RenderJob) -> None:
 
 
 def corrupt_image(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Strong colour cast + sensor noise. img [H, W, 3] in [0, 1] -> same shape."""
-    gains = rng.permutation(np.array([1.6, 0.8, 0.55], np.float32))
-    noise = rng.normal(0.0, 0.07, img.shape).astype(np.float32)
-    return np.clip(img * gains + 0.04 + noise, 0.0, 1.0)
+    """A misfiring camera: wrong exposure (x0.55 or x1.6), a colour cast and sensor noise.
+
+    The exposure error moves luminance far outside the [0.8, 1.1] x median band, which is
+    the failure median-band fusion is designed to reject; a pure hue cast at constant
+    luminance would pass any luminance test. img [H, W, 3] in [0, 1] -> same shape.
+    """
+    exposure = np.float32(rng.choice([0.55, 1.6]))
+    cast = rng.permutation(np.array([1.15, 1.0, 0.85], np.float32))
+    noise = rng.normal(0.0, 0.05, img.shape).astype(np.float32)
+    return np.clip(img * exposure * cast + noise, 0.0, 1.0)
 
 
 def _render_frame(frame: int) -> dict:

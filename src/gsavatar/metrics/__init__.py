@@ -1,0 +1,22 @@
+"""Image-quality metrics used for evaluation and as training losses.
+
+* :func:`psnr`, :func:`ssim` (Wang et al. 2004, skimage-compatible settings), per image ``[B]``.
+* :class:`LPIPS` (AlexNet / VGG16, vanilla LPIPS v0.1 or ST-LPIPS weights), per image ``[B]``;
+  always report its ``lpips_name``.
+"""
+
+from .image import gaussian_kernel1d, mse, psnr, psnr_from_mse, ssim, ssim_map
+from .lpips import LPIPS, LPIPSWeightsError, convert_official_lpips, official_lpips_state_dict
+
+__all__ = [
+    "LPIPS",
+    "LPIPSWeightsError",
+    "convert_official_lpips",
+    "gaussian_kernel1d",
+    "mse",
+    "official_lpips_state_dict",
+    "psnr",
+    "psnr_from_mse",
+    "ssim",
+    "ssim_map",
+]

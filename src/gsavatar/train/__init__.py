@@ -1,0 +1,1 @@
+"""Training: loss terms (``losses``) and, elsewhere in this package, the training loop."""

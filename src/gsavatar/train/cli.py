@@ -1,0 +1,87 @@
+"""``avatar-train``: train the Gaussian avatar (and, later, the appearance predictor).
+
+    avatar-train avatar --dataset ds --out runs/tiny --preset tiny
+    avatar-train avatar --dataset ds --out runs/mmlps --variant mmlps_dagger     # the baseline
+    avatar-train eval --run runs/tiny
+    avatar-train export --run runs/tiny --frame 0 --out frame0.ply
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import tyro
+
+from gsavatar.data_schema import SchemaError
+from gsavatar.train.config import TrainConfig
+
+
+@dataclass
+class Avatar(TrainConfig):
+    """Train the avatar (encoder latents) on a prepared dataset; resumes from the run's latest checkpoint."""
+
+    evaluate: bool = True
+    """Evaluate held-out cameras of training frames (and test frames) at the end."""
+
+    def run(self) -> None:
+        from gsavatar.train.runs import train_and_evaluate
+
+        train_and_evaluate(self, self.evaluate)
+
+
+@dataclass
+class Eval:
+    """Evaluate a trained run: held-out cameras of training frames, and held-out frames."""
+
+    run: Path
+    """Run directory written by ``avatar-train avatar``."""
+    eval_frames: int = 8
+    """Frames per split (evenly spaced)."""
+
+    def run_(self) -> None:
+        from gsavatar.train.runs import evaluate_run
+
+        print(json.dumps(evaluate_run(self.run, self.eval_frames), indent=1))
+
+
+@dataclass
+class Export:
+    """Export the posed avatar of one frame as a standard 3DGS PLY."""
+
+    run: Path
+    """Run directory."""
+    frame: int = 0
+    """Capture frame whose pose (and projected texture) is used."""
+    out: Path = Path("avatar.ply")
+    """Output PLY path."""
+
+    def run_(self) -> None:
+        from gsavatar.train.runs import export_ply
+
+        export_ply(self.run, self.frame, self.out)
+        print(f"wrote {self.out}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    cmd = tyro.extras.subcommand_cli_from_dict({"avatar": Avatar, "eval": Eval, "export": Export},
+                                               prog="avatar-train", description=__doc__, args=argv)
+    try:
+        (cmd.run if isinstance(cmd, Avatar) else cmd.run_)()
+    except SchemaError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except (ValueError, FileNotFoundError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    finally:
+        if torch.distributed.is_available() and torch.distributed.is_initialized():
+            torch.distributed.destroy_process_group()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

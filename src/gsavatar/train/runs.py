@@ -1,0 +1,144 @@
+"""Whole-run operations: train then evaluate, reload a run, export a PLY, render a turntable."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gsavatar.train.checkpoint import load_checkpoint
+from gsavatar.train.config import TrainConfig, resolve
+from gsavatar.train.data import ViewDataset, load_scene
+from gsavatar.train.evaluate import evaluate_views, select_frames
+from gsavatar.train.trainer import AvatarNet, Trainer, build_net, model_config, pick_device, render_views
+from gsavatar.utils.io import atomic_write_json
+
+
+def lpips_or_none(cfg: TrainConfig, device):
+    if cfg.lpips == "off":
+        return None
+    from gsavatar.metrics.lpips import LPIPS
+
+    return LPIPS(weights=cfg.lpips_weights).to(device)
+
+
+def train_and_evaluate(cfg: TrainConfig, evaluate: bool = True) -> dict:
+    tr = Trainer(cfg)
+    summary = tr.train()
+    if tr.rank == 0:
+        print(f"[train] {summary['step']} steps in {summary['seconds']:.0f}s this run")
+    if evaluate and tr.rank == 0 and tr.step >= tr.cfg.steps:
+        res = evaluate_run(tr.out, tr.cfg.eval_frames, loaded=(tr.net, tr.scene, tr.cfg))
+        print(json.dumps(res, indent=1))
+        return res
+    return summary
+
+
+def load_run(run: Path, device: str = "auto") -> tuple[AvatarNet, object, TrainConfig, int]:
+    """Rebuild the net of a run from its config and latest checkpoint."""
+    run = Path(run)
+    cfg_path = run / "config.json"
+    if not cfg_path.exists():
+        from gsavatar.data_schema import SchemaError
+
+        raise SchemaError(cfg_path, "", "not a training run (config.json missing)")
+    saved = json.loads(cfg_path.read_text())
+    fields = {f.name for f in dataclasses.fields(TrainConfig)}
+    t = {k: v for k, v in saved["train"].items() if k in fields and k != "losses"}
+    cfg = resolve(TrainConfig(**{**t, "dataset": Path(t["dataset"]), "out": Path(t["out"]),
+                                 "lpips_weights": Path(t["lpips_weights"]) if t.get("lpips_weights") else None}))
+    dev = pick_device(device)
+    scene = load_scene(cfg.dataset)
+    net = build_net(scene, model_config(cfg), cfg.seed).to(dev)
+    state = load_checkpoint(run / "checkpoints" / "latest.pt", saved, strict_config_keys=("model",))
+    net.load_state_dict(state["modules"]["net"])
+    net.eval()
+    return net, scene, cfg, int(state["step"])
+
+
+def evaluate_run(run: Path, eval_frames: int = 8, loaded: tuple | None = None) -> dict:
+    """Held-out cameras of training frames ("novel view") and held-out frames ("novel pose"), encoder latents.
+
+    ``loaded``: (net, scene, cfg) of a live trainer, to skip reloading the checkpoint.
+    """
+    run = Path(run)
+    net, scene, cfg = loaded if loaded is not None else load_run(run)[:3]
+    dev = next(net.parameters()).device
+    lp = lpips_or_none(cfg, dev)
+    splits = scene.capture.splits
+    sh = model_config(cfg).sh_degree
+    results = {}
+    test_cams = splits["test"].cameras if "test" in splits else splits["train"].cameras
+    sets = {"train_frames_heldout_cams": (select_frames(splits["train"].frames, eval_frames), test_cams)}
+    if "test" in splits:
+        sets["test_frames_heldout_cams"] = (select_frames(splits["test"].frames, eval_frames), test_cams)
+    for name, (frames, cams) in sets.items():
+        data = ViewDataset(scene, "train", cameras=cams, frames=frames, image_scale=cfg.image_scale,
+                           with_texture=net.encoder is not None)
+        results[name] = evaluate_views(net, data, dev, sh, cfg.backend, lpips=lp, save_dir=run / "eval" / name)
+    results["lpips_net"] = getattr(lp, "lpips_name", None) if lp is not None else "off"
+    results["variant"] = cfg.variant
+    atomic_write_json(run / "eval" / "metrics.json", results)
+    return results
+
+
+@torch.no_grad()
+def posed_output(net: AvatarNet, scene, frame: int, sh_degree: int):
+    data = ViewDataset(scene, "train", cameras=scene.capture.splits["train"].cameras[:1], frames=[frame],
+                       with_texture=net.encoder is not None)
+    b = {k: (v[None] if torch.is_tensor(v) else v) for k, v in data.frame_inputs(frame).items()}
+    dev = next(net.parameters()).device
+    b = {k: v.to(dev) for k, v in b.items()}
+    face = b["face"] if b["face"].numel() else None
+    return net(b["pose"], b["root_rotation"], b["root_translation"], face, b.get("texture"), None, sh_degree, True).avatar
+
+
+def export_ply(run: Path, frame: int, out: Path) -> None:
+    from gsavatar.models.ply import export_frame_ply
+
+    net, scene, cfg, _ = load_run(run)
+    if not 0 <= frame < scene.capture.num_frames:
+        raise ValueError(f"frame must be in [0, {scene.capture.num_frames}), got {frame}")
+    export_frame_ply(out, posed_output(net, scene, frame, model_config(cfg).sh_degree), frame=0)
+
+
+def orbit_cameras(center: np.ndarray, radius: float, height: float, n: int, width: int, height_px: int,
+                  fov_deg: float = 40.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n`` cameras on a horizontal circle looking at ``center``. -> viewmats [n,4,4], Ks [n,3,3]."""
+    from gsavatar.geometry.camera import look_at
+
+    f = 0.5 * height_px / np.tan(np.radians(fov_deg) / 2)
+    K = np.array([[f, 0, width / 2 - 0.5], [0, f, height_px / 2 - 0.5], [0, 0, 1]], np.float32)
+    vms = []
+    for a in np.linspace(0, 2 * np.pi, n, endpoint=False):
+        eye = center + np.array([radius * np.sin(a), height, radius * np.cos(a)])
+        R, T = look_at(eye, center)
+        M = np.eye(4, dtype=np.float32)
+        M[:3, :3], M[:3, 3] = R, T
+        vms.append(M)
+    return torch.from_numpy(np.stack(vms)), torch.from_numpy(np.repeat(K[None], n, 0))
+
+
+@torch.no_grad()
+def render_turntable(run: Path, out_mp4: Path, frame: int = 0, n_views: int = 48, size: int = 256, fps: int = 24) -> Path:
+    """Orbit around the posed avatar of ``frame`` and write an mp4 (imageio-ffmpeg)."""
+    import imageio.v2 as imageio
+
+    net, scene, cfg, _ = load_run(run)
+    sh = model_config(cfg).sh_degree
+    out = posed_output(net, scene, frame, sh)
+    center = out.means[0].mean(0).cpu().numpy()
+    vms, Ks = orbit_cameras(center, 2.6, 0.2, n_views, size, size)
+    frames = []
+    for i in range(n_views):
+        col, _ = render_views(out, vms[i : i + 1], Ks[i : i + 1], size, size, torch.ones(1, 3), sh, cfg.backend)
+        frames.append((col[0].clamp(0, 1).permute(1, 2, 0).numpy() * 255).astype(np.uint8))
+    out_mp4 = Path(out_mp4)
+    out_mp4.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_mp4.with_name(f".{out_mp4.stem}.tmp.mp4")
+    imageio.mimwrite(tmp, frames, fps=fps, macro_block_size=1)
+    tmp.replace(out_mp4)
+    return out_mp4
