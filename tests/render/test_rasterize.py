@@ -385,6 +385,11 @@ def test_input_validation_names_argument():
         render(scene, 8, 8, sh_degree=1)
     with pytest.raises(ValueError, match="backend"):
         render(scene, 8, 8, backend="cuda")
+    with pytest.raises(ValueError, match="dtype"):
+        render(dict(scene, colors=scene["colors"].double()), 8, 8)
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="CUDA"):
+            render(scene, 8, 8, backend="gsplat")
 
 
 def test_meta_reports_visibility():
