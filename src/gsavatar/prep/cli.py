@@ -14,7 +14,7 @@ from typing import Literal
 
 import tyro
 
-from gsavatar.data_schema import SchemaError
+from gsavatar.utils.cli import run_reporting_errors
 from gsavatar.prep import stages
 from gsavatar.prep.common import TIMINGS, StageArgs
 from gsavatar.prep.project_uv import ProjectConfig
@@ -174,14 +174,9 @@ def main(argv: list[str] | None = None) -> int:
     cmd = tyro.extras.subcommand_cli_from_dict(
         {k: v for k, v in COMMANDS.items()}, prog="avatar-prep", description=__doc__, args=argv
     )
-    try:
-        cmd.run()
-    except SchemaError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    except (ValueError, FileNotFoundError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    rc = run_reporting_errors(cmd.run)
+    if rc:
+        return rc
     if TIMINGS:
         print("stage timings: " + ", ".join(f"{k} {v:.1f}s" for k, v in TIMINGS.items()))
     return 0

@@ -259,24 +259,10 @@ class LocalizationMasks:
 
     @classmethod
     def load(cls, path: str | Path) -> LocalizationMasks:
+        from gsavatar.utils.io import load_versioned_npz
+
         path = Path(path)
-        if not path.exists():
-            raise SchemaError(path, "", "file not found")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in z.files}
-        except (OSError, ValueError) as e:
-            raise SchemaError(path, "", f"cannot read npz: {e}") from None
-        if "header" not in arrays:
-            raise SchemaError(path, "header", "missing (not a gsavatar localization file)")
-        try:
-            hdr = json.loads(str(arrays["header"]))
-        except json.JSONDecodeError as e:
-            raise SchemaError(path, "header", f"invalid JSON: {e.msg}") from None
-        if not isinstance(hdr, dict) or hdr.get("format") != MASKS_FORMAT:
-            raise SchemaError(path, "header.format", f"expected {MASKS_FORMAT!r}")
-        if hdr.get("version") != MASKS_VERSION:
-            raise SchemaError(path, "header.version", f"unsupported version {hdr.get('version')!r} (expected {MASKS_VERSION})")
+        hdr, arrays = load_versioned_npz(path, MASKS_FORMAT, MASKS_VERSION, what="gsavatar localization")
         for k in ("pose", "face"):
             if k not in arrays:
                 raise SchemaError(path, k, "missing")

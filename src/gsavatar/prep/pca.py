@@ -176,24 +176,10 @@ class PosePCA:
 
     @classmethod
     def load(cls, path: str | Path) -> PosePCA:
+        from gsavatar.utils.io import load_versioned_npz
+
         path = Path(path)
-        if not path.exists():
-            raise SchemaError(path, "", "file not found")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in z.files}
-        except (OSError, ValueError) as e:
-            raise SchemaError(path, "", f"cannot read npz: {e}") from None
-        if "header" not in arrays:
-            raise SchemaError(path, "header", "missing (not a gsavatar pose PCA file)")
-        try:
-            hdr = json.loads(str(arrays["header"]))
-        except json.JSONDecodeError as e:
-            raise SchemaError(path, "header", f"invalid JSON: {e.msg}") from None
-        if not isinstance(hdr, dict) or hdr.get("format") != PCA_FORMAT:
-            raise SchemaError(path, "header.format", f"expected {PCA_FORMAT!r}, got {hdr.get('format') if isinstance(hdr, dict) else hdr!r}")
-        if hdr.get("version") != PCA_VERSION:
-            raise SchemaError(path, "header.version", f"unsupported version {hdr.get('version')!r} (expected {PCA_VERSION})")
+        hdr, arrays = load_versioned_npz(path, PCA_FORMAT, PCA_VERSION, what="gsavatar pose PCA")
         for key in ("mean", "basis", "sigma", "component_group", "slot_group"):
             if key not in arrays:
                 raise SchemaError(path, key, "missing")

@@ -152,24 +152,10 @@ class Hierarchy:
 
     @classmethod
     def load(cls, path: str | Path) -> Hierarchy:
+        from gsavatar.utils.io import load_versioned_npz
+
         path = Path(path)
-        if not path.exists():
-            raise SchemaError(path, "", "file not found")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in z.files}
-        except (OSError, ValueError) as e:
-            raise SchemaError(path, "", f"cannot read npz: {e}") from None
-        if "header" not in arrays:
-            raise SchemaError(path, "header", "missing (not a gsavatar hierarchy file)")
-        try:
-            hdr = json.loads(str(arrays["header"]))
-        except json.JSONDecodeError as e:
-            raise SchemaError(path, "header", f"invalid JSON: {e.msg}") from None
-        if not isinstance(hdr, dict) or hdr.get("format") != HIERARCHY_FORMAT:
-            raise SchemaError(path, "header.format", f"expected {HIERARCHY_FORMAT!r}")
-        if hdr.get("version") != HIERARCHY_VERSION:
-            raise SchemaError(path, "header.version", f"unsupported version {hdr.get('version')!r} (expected {HIERARCHY_VERSION})")
+        hdr, arrays = load_versioned_npz(path, HIERARCHY_FORMAT, HIERARCHY_VERSION, what="gsavatar hierarchy")
         levels = {}
         for lvl in _LEVELS:
             vals = []

@@ -9,14 +9,13 @@
 from __future__ import annotations
 
 import json
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 import tyro
 
-from gsavatar.data_schema import SchemaError
+from gsavatar.utils.cli import run_reporting_errors
 from gsavatar.train.config import TrainConfig
 
 
@@ -66,21 +65,35 @@ class Export:
         print(f"wrote {self.out}")
 
 
+@dataclass
+class Turntable:
+    """Render an orbit around the posed avatar of one frame as an mp4."""
+
+    run: Path
+    """Run directory."""
+    out: Path = Path("turntable.mp4")
+    """Output video."""
+    frame: int = 0
+    """Capture frame whose pose and texture are used."""
+    views: int = 48
+    """Frames of the orbit."""
+    size: int = 256
+    """Image size in pixels (square)."""
+
+    def run_(self) -> None:
+        from gsavatar.train.runs import render_turntable
+
+        print(f"wrote {render_turntable(self.run, self.out, self.frame, self.views, self.size)}")
+
+
 def main(argv: list[str] | None = None) -> int:
-    cmd = tyro.extras.subcommand_cli_from_dict({"avatar": Avatar, "eval": Eval, "export": Export},
+    cmd = tyro.extras.subcommand_cli_from_dict({"avatar": Avatar, "eval": Eval, "export": Export, "turntable": Turntable},
                                                prog="avatar-train", description=__doc__, args=argv)
     try:
-        (cmd.run if isinstance(cmd, Avatar) else cmd.run_)()
-    except SchemaError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    except (ValueError, FileNotFoundError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+        return run_reporting_errors(cmd.run if isinstance(cmd, Avatar) else cmd.run_)
     finally:
         if torch.distributed.is_available() and torch.distributed.is_initialized():
             torch.distributed.destroy_process_group()
-    return 0
 
 
 if __name__ == "__main__":

@@ -155,3 +155,35 @@ def write_image(path: str | Path, img: np.ndarray) -> None:
     if not ok:
         raise OSError(f"could not encode {path}")
     atomic_write_bytes(path, enc.tobytes())
+
+
+def load_versioned_npz(path: str | Path, fmt: str, version: int, required: tuple[str, ...] = (),
+                       what: str = "gsavatar") -> tuple[dict, dict[str, np.ndarray]]:
+    """Load an npz written with a JSON ``header`` (format + version); no pickles.
+
+    Returns (header, arrays). Raises SchemaError naming the file and the field for a missing
+    file, unreadable npz, missing/invalid header, wrong format or version, or missing arrays.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise SchemaError(path, "", "file not found")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (OSError, ValueError) as e:
+        raise SchemaError(path, "", f"cannot read npz: {e}") from None
+    if "header" not in arrays:
+        raise SchemaError(path, "header", f"missing (not a {what} file)")
+    try:
+        hdr = json.loads(str(arrays.pop("header")))
+    except json.JSONDecodeError as e:
+        raise SchemaError(path, "header", f"invalid JSON: {e.msg}") from None
+    if not isinstance(hdr, dict) or hdr.get("format") != fmt:
+        got = hdr.get("format") if isinstance(hdr, dict) else hdr
+        raise SchemaError(path, "header.format", f"expected {fmt!r}, got {got!r}")
+    if hdr.get("version") != version:
+        raise SchemaError(path, "header.version", f"unsupported version {hdr.get('version')!r} (expected {version})")
+    for k in required:
+        if k not in arrays:
+            raise SchemaError(path, k, "missing")
+    return hdr, arrays

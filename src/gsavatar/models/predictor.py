@@ -1,0 +1,433 @@
+"""Autoregressive appearance predictor (paper section 3.4, supp. D.3).
+
+At driving time no UV texture exists, so the per-anchor appearance latents ``l_t``
+(``[A, L]``) are predicted from the motion and the previous latents:
+
+    l_t = clampPCA( f(θ_{t-N_b+1..t}, root_{t-N_b+1..t}, l_{t-1}) )
+
+Causality: the window holds the ``N_b`` most recent poses *including the current
+frame t* (the paper's "previous N_b body poses" read for driving, where pose t is
+known when frame t is rendered), plus the latents of frame ``t-1``. Nothing after
+``t`` and nothing older than ``t-N_b+1`` enters. At a sequence start the window is
+filled by repeating the first frame (:meth:`AppearancePredictor.init_state`; the
+trainer pads the same way at segment starts).
+
+Tokens (one set per frame, attention is across tokens, not across time):
+
+- one **pose token per pose slot** ``j`` of ``pose_slots`` (the "local" slots: by
+  default those active for at least one anchor in the localization masks). The slot's
+  ``N_b`` values, ``N_b-1`` velocities and ``N_b-2`` accelerations (finite differences
+  over the window) -> ``3 N_b - 3`` features -> the slot's own shallow MLP.
+- **six root-motion slots**, treated exactly like pose slots: the axis-angle and the
+  translation of every window frame's root transform expressed in the *last* frame's
+  root frame, ``R_rel,k = R_N^T R_k`` and ``t_rel,k = R_N^T (t_k - t_N)``. This is the
+  paper's normalisation ("remove the last frame's global translation and rotation from
+  all poses"): the joint-local pose parameters are invariant to root motion anyway, and
+  the relative root motion is invariant to any constant rigid transform of the whole
+  window (so heading and position in the room cannot become appearance cues). The
+  last frame's own root values are then identically zero (constant features are
+  dropped by the input normalisation).
+- one **latent token per anchor** from its previous latent (own shallow MLP per anchor).
+
+Pose values are optionally passed through the avatar's localized pose PCA with
+±2σ clamping first (same transform as the avatar's conditioning, train and test).
+Features are standardised per (slot, feature) with statistics fit on the training
+windows (:meth:`fit_input_normalization`). Tokens get a sinusoidal absolute
+positional encoding over the token index plus a learnable type embedding (pose /
+latent), go through ``blocks`` pre-norm transformer blocks and a final LayerNorm; a
+linear head maps every *anchor* token to its ``L``-d latent. Outputs are clamped by a
+per-anchor latent PCA (``K`` components, coefficients clamped to ±clamp_sigma·σ,
+fit on the training targets; a low-rank projection like the pose PCA) in training
+and driving alike.
+
+Optional (beyond the paper): :class:`InitialLatentNet` regresses a frame's latents
+from its (PCA'd) pose alone; ``init_state(..., init_latents=None)`` starts from it
+when it has been trained, otherwise from zeros.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from gsavatar.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from gsavatar.models.mlp import AnchorMLPs
+
+ROOT_SLOTS = 6
+"""Extra pose slots carrying the relative root motion: axis-angle (3), translation (3)."""
+
+
+@dataclass(frozen=True)
+class PredictorConfig:
+    """Hyper-parameters of the appearance predictor (defaults: the paper's, supp. D.3)."""
+
+    history: int = 10
+    """N_b: poses in the window, the current frame included (paper: 10). >= 3."""
+    width: int = 128
+    """Token (embedding) dimension (paper: 128)."""
+    heads: int = 4
+    """Attention heads (paper: 4)."""
+    ff: int = 256
+    """Feed-forward hidden dimension of a transformer block (paper: 256)."""
+    blocks: int = 1
+    """Transformer blocks (paper: 1)."""
+    latent_dim: int = 16
+    """L: per-anchor latent size (paper: 16); the trainer sets it from the avatar run."""
+    token_hidden: int = 64
+    """Hidden width of every per-slot / per-anchor token MLP (one hidden layer, ReLU)."""
+    latent_pca_components: int = 8
+    """K: components of the per-anchor latent PCA that clamps the outputs (<= latent_dim)."""
+    clamp_sigma: float = 2.0
+    """Latent PCA coefficients are clamped to ±clamp_sigma·σ."""
+    dropout: float = 0.0
+    """Dropout inside the transformer block (0: training and streaming are deterministic)."""
+    initial_net: bool = True
+    """Build the pose-conditioned :class:`InitialLatentNet` (beyond the paper)."""
+    initial_hidden: int = 128
+    """Hidden width of the InitialLatentNet (two hidden layers)."""
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+class RolloutState(NamedTuple):
+    """Streaming state: the last N_b driving frames (oldest first) and the previous latents."""
+
+    pose: Tensor
+    """Pose history.  # [N_b, P]"""
+    root_rotation: Tensor
+    """Root rotation history, axis-angle.  # [N_b, 3]"""
+    root_translation: Tensor
+    """Root translation history, metres.  # [N_b, 3]"""
+    latents: Tensor
+    """Latents of the previous frame.  # [A, L]"""
+
+
+class LatentPCA(NamedTuple):
+    mean: Tensor
+    """Per-anchor mean latent.  # [A, L]"""
+    basis: Tensor
+    """Unit principal directions as columns; zero columns for missing components.  # [A, L, K]"""
+    sigma: Tensor
+    """Coefficient standard deviation (0 for missing components).  # [A, K]"""
+
+
+# ----------------------------------------------------------------------------- math
+def relative_root_motion(root_rotation: Tensor, root_translation: Tensor) -> Tensor:
+    """Each frame's root transform in the last frame's root frame (float64 inside).
+
+    ``R_rel,k = R_N^T R_k`` (as axis-angle), ``t_rel,k = R_N^T (t_k - t_N)``.
+    root_rotation [B, N, 3] axis-angle, root_translation [B, N, 3] -> [B, N, 6]
+    """
+    dt = root_rotation.dtype
+    R = axis_angle_to_matrix(root_rotation.double())  # [B, N, 3, 3]
+    RlT = R[:, -1:].transpose(-1, -2)  # [B, 1, 3, 3]
+    rot = matrix_to_axis_angle(RlT @ R)  # [B, N, 3]
+    t = root_translation.double()
+    trans = (RlT @ (t - t[:, -1:])[..., None])[..., 0]  # [B, N, 3]
+    return torch.cat([rot, trans], -1).to(dt)
+
+
+def window_features(x: Tensor) -> Tensor:
+    """Value, velocity and acceleration (finite differences) of every slot over the window.
+
+    x [B, N, S] -> [B, S, 3N-3]: N values, N-1 velocities, N-2 accelerations (oldest first).
+    """
+    v = x[:, 1:] - x[:, :-1]  # [B, N-1, S]
+    a = v[:, 1:] - v[:, :-1]  # [B, N-2, S]
+    return torch.cat([x, v, a], 1).transpose(1, 2)
+
+
+def sinusoidal_encoding(n: int, dim: int) -> Tensor:
+    """Transformer sinusoidal absolute positional encoding. -> [n, dim]"""
+    pos = torch.arange(n, dtype=torch.float64)[:, None]
+    freq = torch.exp(-math.log(10000.0) * torch.arange(0, dim, 2, dtype=torch.float64) / dim)  # [ceil(dim/2)]
+    pe = torch.zeros(n, dim, dtype=torch.float64)
+    pe[:, 0::2] = torch.sin(pos * freq)
+    pe[:, 1::2] = torch.cos(pos * freq)[:, : dim // 2]
+    return pe.float()
+
+
+def fit_latent_pca(latents: Tensor, components: int) -> LatentPCA:
+    """Per-anchor PCA of training latents (float64 SVD).
+
+    Keeps ``min(components, L)`` columns; components beyond the numerical rank (or
+    ``F-1``) get a zero column and σ = 0, so they project to the mean. Signs: largest
+    absolute entry of each direction positive. latents [F, A, L] -> LatentPCA
+    """
+    if latents.ndim != 3 or latents.shape[0] < 1:
+        raise ValueError(f"latents must be [F, A, L] with F >= 1, got {tuple(latents.shape)}")
+    F, A, L = latents.shape
+    K = min(int(components), L)
+    x = latents.detach().double().transpose(0, 1)  # [A, F, L]
+    mean = x.mean(1)  # [A, L]
+    basis = torch.zeros(A, L, K, dtype=torch.float64)
+    sigma = torch.zeros(A, K, dtype=torch.float64)
+    if F >= 2 and K > 0:
+        _, s, vh = torch.linalg.svd(x - mean[:, None], full_matrices=False)  # s [A, r], vh [A, r, L]
+        r = min(K, s.shape[1])
+        tol = torch.clamp(s[:, :1] * max(F, L) * torch.finfo(torch.float64).eps, min=1e-12)  # [A, 1]
+        keep = (s[:, :r] > tol).double()  # [A, r]
+        V = vh[:, :r].transpose(1, 2)  # [A, L, r]
+        idx = V.abs().argmax(1, keepdim=True)  # [A, 1, r]
+        V = V * torch.where(torch.gather(V, 1, idx) < 0, -1.0, 1.0)
+        basis[:, :, :r] = V * keep[:, None]
+        sigma[:, :r] = s[:, :r] / math.sqrt(F - 1) * keep
+    f = latents.dtype
+    return LatentPCA(mean.to(f), basis.to(f), sigma.to(f))
+
+
+def latent_pca_project(x: Tensor, mean: Tensor, basis: Tensor, limit: Tensor) -> Tensor:
+    """Project per-anchor latents onto their PCA box: coefficients clamped to ±limit.
+
+    x [..., A, L], mean [A, L], basis [A, L, K], limit [A, K] -> [..., A, L].
+    Differentiable (zero gradient through clamped coefficients).
+    """
+    c = torch.einsum("...al,alk->...ak", x - mean, basis)
+    c = torch.maximum(torch.minimum(c, limit), -limit)
+    return mean + torch.einsum("...ak,alk->...al", c, basis)
+
+
+def _check(name: str, t: Tensor, shape: tuple) -> None:
+    if t.ndim != len(shape) or any(e is not None and e != a for e, a in zip(shape, t.shape)):
+        pretty = "[" + ", ".join("*" if e is None else str(e) for e in shape) + "]"
+        raise ValueError(f"{name} must be {pretty}, got {list(t.shape)}")
+
+
+# ----------------------------------------------------------------------------- modules
+class InitialLatentNet(nn.Module):
+    """Pose -> latents regressor, used to start a rollout instead of zeros (beyond the paper).
+
+    MLP ``in_dim -> hidden -> hidden -> A·L`` (ReLU); the last layer starts at zero so an
+    untrained net predicts zeros. x [B, in_dim] -> [B, A, L]
+    """
+
+    def __init__(self, in_dim: int, num_anchors: int, latent_dim: int, hidden: int = 128) -> None:
+        super().__init__()
+        self.num_anchors, self.latent_dim = int(num_anchors), int(latent_dim)
+        self.net = nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
+                                 nn.Linear(hidden, num_anchors * latent_dim))
+        nn.init.zeros_(self.net[-1].weight)
+        nn.init.zeros_(self.net[-1].bias)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.net(x).reshape(x.shape[0], self.num_anchors, self.latent_dim)
+
+
+class AppearancePredictor(nn.Module):
+    """Transformer over pose-slot and anchor tokens -> per-anchor latents (module docstring).
+
+    Args:
+        config: hyper-parameters.
+        num_anchors: A.
+        pose_slots: indices into the pose vector of the local slots that get tokens.
+        pose_dim: P, length of the driving pose vector.
+        pose_pca: optional ``(mean [P], basis [P, C], limit [C])`` of the avatar's pose
+            PCA; poses are projected and clamped with it before anything else.
+        seed: initialisation seed.
+    """
+
+    def __init__(self, config: PredictorConfig, num_anchors: int, pose_slots: Sequence[int] | np.ndarray | Tensor,
+                 pose_dim: int, pose_pca: tuple | None = None, seed: int = 0) -> None:
+        super().__init__()
+        c = config
+        if c.history < 3:
+            raise ValueError(f"config.history must be >= 3 (value, velocity, acceleration), got {c.history}")
+        if c.width % c.heads:
+            raise ValueError(f"config.width ({c.width}) must be divisible by config.heads ({c.heads})")
+        if not 0 <= c.latent_pca_components <= c.latent_dim:
+            raise ValueError(f"config.latent_pca_components must be in [0, {c.latent_dim}], got {c.latent_pca_components}")
+        slots = torch.as_tensor(np.asarray(pose_slots), dtype=torch.long).reshape(-1)
+        if slots.numel() and (slots.min() < 0 or slots.max() >= pose_dim):
+            raise ValueError(f"pose_slots must index [0, {pose_dim}), got range [{int(slots.min())}, {int(slots.max())}]")
+        self.config, self.num_anchors, self.pose_dim = c, int(num_anchors), int(pose_dim)
+        A, L, K, D = self.num_anchors, c.latent_dim, c.latent_pca_components, c.width
+        S = int(slots.numel()) + ROOT_SLOTS
+        Fdim = 3 * c.history - 3
+        self.num_slots, self.feature_dim = S, Fdim
+        f32 = lambda a: None if a is None else torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+        self.register_buffer("pose_slots", slots)  # [S - 6]
+        pm, pb, pl = pose_pca if pose_pca is not None else (None, None, None)
+        self.register_buffer("pose_pca_mean", f32(pm))  # [P] or None
+        self.register_buffer("pose_pca_basis", f32(pb))  # [P, C] or None
+        self.register_buffer("pose_pca_limit", f32(pl))  # [C] or None
+        self.register_buffer("feature_mean", torch.zeros(S, Fdim))  # [S, 3N-3]
+        self.register_buffer("feature_scale", torch.ones(S, Fdim))  # [S, 3N-3] 1/std, 0 for constant features
+        self.register_buffer("latent_mean", torch.zeros(A, L))
+        self.register_buffer("latent_basis", torch.zeros(A, L, K))
+        self.register_buffer("latent_limit", torch.zeros(A, K))
+        self.register_buffer("latent_pca_ready", torch.tensor(False))
+        self.register_buffer("initial_ready", torch.tensor(False))
+        self.register_buffer("positional", sinusoidal_encoding(S + A, D), persistent=False)  # [S + A, D]
+
+        gen = torch.Generator().manual_seed(seed)
+        torch.manual_seed(seed)  # nn.TransformerEncoderLayer / nn.Linear use the global RNG
+        self.pose_tokens = AnchorMLPs(S, Fdim, D, (c.token_hidden,), generator=gen)
+        self.latent_tokens = AnchorMLPs(A, L, D, (c.token_hidden,), generator=gen)
+        self.type_embedding = nn.Parameter(torch.zeros(2, D))  # [pose, latent]
+        layer = nn.TransformerEncoderLayer(D, c.heads, c.ff, c.dropout, activation="gelu", batch_first=True,
+                                           norm_first=True)
+        self.transformer = nn.TransformerEncoder(layer, c.blocks, enable_nested_tensor=False)
+        self.norm = nn.LayerNorm(D)
+        self.head = nn.Linear(D, L)
+        init_in = int(pb.shape[1]) if pb is not None else int(slots.numel())
+        self.initial = InitialLatentNet(init_in, A, L, c.initial_hidden) if c.initial_net and init_in > 0 else None
+
+    # ------------------------------------------------------------------ inputs
+    def conditioning_pose(self, pose: Tensor) -> Tensor:
+        """Pose PCA projection with clamping (identity without a PCA). [..., P] -> [..., P]"""
+        if self.pose_pca_basis is None:
+            return pose
+        m, b, lim = self.pose_pca_mean.to(pose), self.pose_pca_basis.to(pose), self.pose_pca_limit.to(pose)
+        c = torch.maximum(torch.minimum((pose - m) @ b, lim), -lim)
+        return c @ b.T + m
+
+    def slot_values(self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor) -> Tensor:
+        """Per-slot values over the window: local pose slots, then the relative root motion.
+
+        [B, N, P], [B, N, 3], [B, N, 3] -> [B, N, S]
+        """
+        pose = self.conditioning_pose(pose_window)[..., self.pose_slots]  # [B, N, S-6]
+        return torch.cat([pose, relative_root_motion(root_rot_window, root_trans_window)], -1)
+
+    def features(self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor) -> Tensor:
+        """Raw (unnormalised) token features. -> [B, S, 3N-3]"""
+        return window_features(self.slot_values(pose_window, root_rot_window, root_trans_window))
+
+    @torch.no_grad()
+    def fit_input_normalization(self, features: Tensor, min_std: float = 1e-6) -> None:
+        """Standardise each (slot, feature) with training statistics; constant ones are dropped.
+
+        features [n, S, 3N-3] as returned by :meth:`features`.
+        """
+        _check("features", features, (None, self.num_slots, self.feature_dim))
+        f = features.double()
+        mean, std = f.mean(0), f.std(0, unbiased=False)
+        self.feature_mean.copy_(mean)
+        self.feature_scale.copy_(torch.where(std > min_std, 1.0 / std.clamp_min(min_std), torch.zeros_like(std)))
+
+    @torch.no_grad()
+    def fit_latent_pca(self, latents: Tensor) -> LatentPCA:
+        """Fit the output clamp on training target latents [F, A, L]; returns the fit."""
+        _check("latents", latents, (None, self.num_anchors, self.config.latent_dim))
+        pca = fit_latent_pca(latents, self.config.latent_pca_components)
+        self.latent_mean.copy_(pca.mean)
+        self.latent_basis.copy_(pca.basis)
+        self.latent_limit.copy_(self.config.clamp_sigma * pca.sigma)
+        self.latent_pca_ready.fill_(True)
+        return pca
+
+    def clamp_latents(self, latents: Tensor) -> Tensor:
+        """Latent PCA projection with ±clamp_sigma·σ clamping (identity before it is fit). [..., A, L]"""
+        if not bool(self.latent_pca_ready):
+            return latents
+        return latent_pca_project(latents, self.latent_mean, self.latent_basis, self.latent_limit)
+
+    # ------------------------------------------------------------------ forward
+    def forward(self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor,
+                prev_latents: Tensor) -> Tensor:
+        """Latents of the window's last frame t.
+
+        pose_window [B, N_b, P] (frames t-N_b+1..t), root_rot_window [B, N_b, 3],
+        root_trans_window [B, N_b, 3], prev_latents [B, A, L] (frame t-1) -> [B, A, L] (clamped)
+        """
+        N, A, L = self.config.history, self.num_anchors, self.config.latent_dim
+        _check("pose_window", pose_window, (None, N, self.pose_dim))
+        B = pose_window.shape[0]
+        _check("root_rot_window", root_rot_window, (B, N, 3))
+        _check("root_trans_window", root_trans_window, (B, N, 3))
+        _check("prev_latents", prev_latents, (B, A, L))
+        x = (self.features(pose_window, root_rot_window, root_trans_window) - self.feature_mean) * self.feature_scale
+        tokens = torch.cat([self.pose_tokens(x) + self.type_embedding[0],
+                            self.latent_tokens(prev_latents) + self.type_embedding[1]], 1)  # [B, S + A, D]
+        h = self.norm(self.transformer(tokens + self.positional.to(tokens)))
+        return self.clamp_latents(self.head(h[:, self.num_slots:]))  # [B, A, L]
+
+    # ------------------------------------------------------------------ initial latents
+    def initial_features(self, pose: Tensor) -> Tensor:
+        """InitialLatentNet input: clamped pose-PCA coefficients / σ (or the local slots). [B, P] -> [B, C]"""
+        if self.pose_pca_basis is None:
+            return pose[:, self.pose_slots]
+        m, b, lim = self.pose_pca_mean.to(pose), self.pose_pca_basis.to(pose), self.pose_pca_limit.to(pose)
+        c = torch.maximum(torch.minimum((pose - m) @ b, lim), -lim)
+        return c / lim.clamp_min(1e-12)
+
+    def initial_latents(self, pose: Tensor, trained_only: bool = True) -> Tensor:
+        """Latents to start a rollout: the InitialLatentNet's (clamped) when available, else zeros.
+
+        pose [B, P] -> [B, A, L]. ``trained_only=False`` uses the net even before it is marked trained.
+        """
+        _check("pose", pose, (None, self.pose_dim))
+        if self.initial is None or (trained_only and not bool(self.initial_ready)):
+            return pose.new_zeros(pose.shape[0], self.num_anchors, self.config.latent_dim)
+        return self.clamp_latents(self.initial(self.initial_features(pose)))
+
+    # ------------------------------------------------------------------ streaming
+    @torch.no_grad()
+    def init_state(self, first_pose: Tensor, first_root_rot: Tensor, first_root_trans: Tensor,
+                   init_latents: Tensor | None = None) -> RolloutState:
+        """History = the first frame repeated N_b times; previous latents = ``init_latents`` [A, L]
+        or, when None, :meth:`initial_latents` (the trained InitialLatentNet, else zeros)."""
+        N = self.config.history
+        _check("first_pose", first_pose, (self.pose_dim,))
+        _check("first_root_rot", first_root_rot, (3,))
+        _check("first_root_trans", first_root_trans, (3,))
+        if init_latents is None:
+            init_latents = self.initial_latents(first_pose[None])[0]
+        _check("init_latents", init_latents, (self.num_anchors, self.config.latent_dim))
+        rep = lambda x: x[None].expand(N, -1).clone()  # noqa: E731
+        return RolloutState(rep(first_pose), rep(first_root_rot), rep(first_root_trans), init_latents.clone())
+
+    @torch.no_grad()
+    def step(self, state: RolloutState, pose: Tensor, root_rot: Tensor, root_trans: Tensor) -> tuple[Tensor, RolloutState]:
+        """Push frame t (pose [P], root_rot [3], root_trans [3]) and predict its latents.
+
+        -> (latents [A, L], new state). Uses the module's current mode (call ``.eval()`` with dropout).
+        """
+        _check("pose", pose, (self.pose_dim,))
+        _check("root_rot", root_rot, (3,))
+        _check("root_trans", root_trans, (3,))
+        push = lambda h, x: torch.cat([h[1:], x[None].to(h)], 0)  # noqa: E731
+        p, r, t = push(state.pose, pose), push(state.root_rotation, root_rot), push(state.root_translation, root_trans)
+        lat = self(p[None], r[None], t[None], state.latents[None])[0]
+        return lat, RolloutState(p, r, t, lat)
+
+    @torch.no_grad()
+    def rollout(self, poses: Tensor, root_rot: Tensor, root_trans: Tensor, init_latents: Tensor | None = None,
+                reinit_every: int = 0, reinit_latents: Callable[[int], Tensor] | None = None,
+                first_is_given: bool = False) -> Tensor:
+        """Free-running prediction over a sequence, one :meth:`step` per frame.
+
+        poses [T, P], root_rot [T, 3], root_trans [T, 3]; ``init_latents`` [A, L]: the
+        "previous" latents of frame 0 (None: :meth:`initial_latents` of frame 0). With
+        ``first_is_given`` they are frame 0's own latents (teacher-forced first frame):
+        output 0 is ``init_latents`` and prediction starts at frame 1. ``reinit_every`` > 0:
+        at every frame t > 0 with ``t % reinit_every == 0`` the previous latents are replaced
+        by ``reinit_latents(t)`` [A, L] (None: :meth:`initial_latents` of frame t).
+        -> [T, A, L]
+        """
+        T = poses.shape[0] if poses.ndim == 2 else -1
+        _check("poses", poses, (None, self.pose_dim))
+        _check("root_rot", root_rot, (T, 3))
+        _check("root_trans", root_trans, (T, 3))
+        if T < 1:
+            raise ValueError("poses must hold at least one frame, got 0")
+        if first_is_given and init_latents is None:
+            raise ValueError("first_is_given=True needs init_latents (frame 0's latents), got None")
+        state = self.init_state(poses[0], root_rot[0], root_trans[0], init_latents)
+        out = [state.latents] if first_is_given else []
+        for t in range(1 if first_is_given else 0, T):
+            if reinit_every > 0 and t > 0 and t % reinit_every == 0:
+                new = reinit_latents(t) if reinit_latents is not None else self.initial_latents(poses[t : t + 1])[0]
+                _check("reinit_latents(t)", new, (self.num_anchors, self.config.latent_dim))
+                state = state._replace(latents=new.to(state.latents))
+            lat, state = self.step(state, poses[t], root_rot[t], root_trans[t])
+            out.append(lat)
+        return torch.stack(out)
