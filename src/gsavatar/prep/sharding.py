@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import multiprocessing
 import os
 import time
 from collections.abc import Callable
@@ -98,7 +99,8 @@ def run_sharded(
     t0 = time.perf_counter()
     with progress_bar(f"{label} ({len(mine) - len(todo)}/{len(mine)} shards done)", total=n_frames) as bar:
         if workers > 1 and len(todo) > 1:
-            with ProcessPoolExecutor(max_workers=workers) as ex:
+            # spawn, not fork: a fork after torch/open3d started their thread pools can deadlock
+            with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as ex:
                 futs = [ex.submit(_run_one, compute, store, s, chash) for s in todo]
                 for f in futs:
                     bar.advance(f.result())
