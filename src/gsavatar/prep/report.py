@@ -94,7 +94,8 @@ def build_report(dataset: Path, out: Path, frames: list[int] | None = None, comp
 
 
 def _compare_mean(cap, dataset: Path, cfg: dict, frames: list[int], surface: np.ndarray) -> dict:
-    """Re-project ``frames`` with both fusion rules; PSNR on texels seen by >= 2 views."""
+    """Re-project ``frames`` with both fusion rules; PSNR on texels seen by >= 2 and >= 3 views
+    (a median can only out-vote a bad sample when at least 3 views saw the texel)."""
     from gsavatar.prep.project_uv import ProjectConfig, UVProjector, load_frame_views
     from gsavatar.prep.stages import load_atlas, load_atlas_face_mask
 
@@ -103,16 +104,17 @@ def _compare_mean(cap, dataset: Path, cfg: dict, frames: list[int], surface: np.
     posed = ShardReader(stage_dir(dataset, "pose-template"))
     fields = {k: v for k, v in cfg.items() if k in ProjectConfig.__dataclass_fields__}
     fields["band"] = tuple(fields["band"])
-    out: dict[str, list[float]] = {"median_band": [], "mean": []}
+    out: dict[str, list[float]] = {"median_band": [], "mean": [], "median_band_3v": [], "mean_3v": []}
     for f in frames:
         views = load_frame_views(cap, f, cfg["cameras"])
         gt = load_gt_texture(cap.root, f, int(cfg["tex_size"]))
         if gt is None:
             continue
-        for fusion in out:
+        for fusion in ("median_band", "mean"):
             proj = UVProjector(cap.template.faces, tm, ProjectConfig(**{**fields, "fusion": fusion}), fmask)
             r = proj.project(posed.get(f)["vertices"], views, frame=f)
             out[fusion].append(texture_psnr(r.texture, gt, surface & (r.seen >= 2)))
+            out[f"{fusion}_3v"].append(texture_psnr(r.texture, gt, surface & (r.seen >= 3)))
     return {k: float(np.mean(v)) if v else float("nan") for k, v in out.items()}
 
 
