@@ -35,7 +35,10 @@ Features are standardised per (slot, feature) with statistics fit on the trainin
 windows (:meth:`fit_input_normalization`). Tokens get a sinusoidal absolute
 positional encoding over the token index plus a learnable type embedding (pose /
 latent), go through ``blocks`` pre-norm transformer blocks and a final LayerNorm; a
-linear head maps every *anchor* token to its ``L``-d latent. Outputs are clamped by a
+linear head maps every *anchor* token to its ``L``-d latent. Latents are standardised
+with per-(anchor, dim) training mean/std on the way in and de-standardised on the
+way out (the encoder's latents can be far from unit scale; without this, the clamp
+below zeroes the gradients of an untrained head). Outputs are clamped by a
 per-anchor latent PCA (``K`` components, coefficients clamped to ±clamp_sigma·σ,
 fit on the training targets; a low-rank projection like the pose PCA) in training
 and driving alike.
@@ -203,10 +206,10 @@ def _check(name: str, t: Tensor, shape: tuple) -> None:
 
 # ----------------------------------------------------------------------------- modules
 class InitialLatentNet(nn.Module):
-    """Pose -> latents regressor, used to start a rollout instead of zeros (beyond the paper).
+    """Pose -> standardised latents regressor, to start a rollout instead of zeros (beyond the paper).
 
     MLP ``in_dim -> hidden -> hidden -> A·L`` (ReLU); the last layer starts at zero so an
-    untrained net predicts zeros. x [B, in_dim] -> [B, A, L]
+    untrained net predicts the training mean. x [B, in_dim] -> [B, A, L]
     """
 
     def __init__(self, in_dim: int, num_anchors: int, latent_dim: int, hidden: int = 128) -> None:
@@ -260,7 +263,8 @@ class AppearancePredictor(nn.Module):
         self.register_buffer("pose_pca_limit", f32(pl))  # [C] or None
         self.register_buffer("feature_mean", torch.zeros(S, Fdim))  # [S, 3N-3]
         self.register_buffer("feature_scale", torch.ones(S, Fdim))  # [S, 3N-3] 1/std, 0 for constant features
-        self.register_buffer("latent_mean", torch.zeros(A, L))
+        self.register_buffer("latent_mean", torch.zeros(A, L))  # [A, L] train mean (also the PCA centre)
+        self.register_buffer("latent_scale", torch.ones(A, L))  # [A, L] train std (floored)
         self.register_buffer("latent_basis", torch.zeros(A, L, K))
         self.register_buffer("latent_limit", torch.zeros(A, K))
         self.register_buffer("latent_pca_ready", torch.tensor(False))
@@ -268,17 +272,21 @@ class AppearancePredictor(nn.Module):
         self.register_buffer("positional", sinusoidal_encoding(S + A, D), persistent=False)  # [S + A, D]
 
         gen = torch.Generator().manual_seed(seed)
-        torch.manual_seed(seed)  # nn.TransformerEncoderLayer / nn.Linear use the global RNG
-        self.pose_tokens = AnchorMLPs(S, Fdim, D, (c.token_hidden,), generator=gen)
-        self.latent_tokens = AnchorMLPs(A, L, D, (c.token_hidden,), generator=gen)
-        self.type_embedding = nn.Parameter(torch.zeros(2, D))  # [pose, latent]
-        layer = nn.TransformerEncoderLayer(D, c.heads, c.ff, c.dropout, activation="gelu", batch_first=True,
-                                           norm_first=True)
-        self.transformer = nn.TransformerEncoder(layer, c.blocks, enable_nested_tensor=False)
-        self.norm = nn.LayerNorm(D)
-        self.head = nn.Linear(D, L)
-        init_in = int(pb.shape[1]) if pb is not None else int(slots.numel())
-        self.initial = InitialLatentNet(init_in, A, L, c.initial_hidden) if c.initial_net and init_in > 0 else None
+        with torch.random.fork_rng(devices=[]):  # nn.TransformerEncoderLayer / nn.Linear draw from the global RNG
+            torch.manual_seed(seed)
+            self.pose_tokens = AnchorMLPs(S, Fdim, D, (c.token_hidden,), generator=gen)
+            self.latent_tokens = AnchorMLPs(A, L, D, (c.token_hidden,), generator=gen)
+            self.type_embedding = nn.Parameter(torch.zeros(2, D))  # [pose, latent]
+            layer = nn.TransformerEncoderLayer(D, c.heads, c.ff, c.dropout, activation="gelu", batch_first=True,
+                                               norm_first=True)
+            self.transformer = nn.TransformerEncoder(layer, c.blocks, enable_nested_tensor=False)
+            self.norm = nn.LayerNorm(D)
+            self.head = nn.Linear(D, L)
+            with torch.no_grad():  # start near the training mean (outputs are mean + scale * head)
+                self.head.weight.mul_(0.1)
+                self.head.bias.zero_()
+            init_in = int(pb.shape[1]) if pb is not None else int(slots.numel())
+            self.initial = InitialLatentNet(init_in, A, L, c.initial_hidden) if c.initial_net and init_in > 0 else None
 
     # ------------------------------------------------------------------ inputs
     def conditioning_pose(self, pose: Tensor) -> Tensor:
@@ -314,10 +322,18 @@ class AppearancePredictor(nn.Module):
         self.feature_scale.copy_(torch.where(std > min_std, 1.0 / std.clamp_min(min_std), torch.zeros_like(std)))
 
     @torch.no_grad()
-    def fit_latent_pca(self, latents: Tensor) -> LatentPCA:
-        """Fit the output clamp on training target latents [F, A, L]; returns the fit."""
+    def fit_latent_statistics(self, latents: Tensor, rel_floor: float = 0.1) -> LatentPCA:
+        """Fit the latent normalisation and the output clamp on training targets [F, A, L].
+
+        Latent tokens see ``(l - mean) / scale`` and the head predicts ``(l - mean) / scale``,
+        with ``scale`` the per-(anchor, dim) std floored at ``rel_floor`` x its RMS over all
+        anchors and dims (so near-constant dims are not blown up). Returns the PCA fit.
+        """
         _check("latents", latents, (None, self.num_anchors, self.config.latent_dim))
         pca = fit_latent_pca(latents, self.config.latent_pca_components)
+        std = latents.double().std(0, unbiased=False) if latents.shape[0] > 1 else torch.zeros_like(pca.mean).double()
+        floor = max(rel_floor * float(std.pow(2).mean().sqrt()), 1e-8)
+        self.latent_scale.copy_(std.clamp_min(floor))
         self.latent_mean.copy_(pca.mean)
         self.latent_basis.copy_(pca.basis)
         self.latent_limit.copy_(self.config.clamp_sigma * pca.sigma)
@@ -345,10 +361,12 @@ class AppearancePredictor(nn.Module):
         _check("root_trans_window", root_trans_window, (B, N, 3))
         _check("prev_latents", prev_latents, (B, A, L))
         x = (self.features(pose_window, root_rot_window, root_trans_window) - self.feature_mean) * self.feature_scale
+        lat = (prev_latents - self.latent_mean) / self.latent_scale  # [B, A, L] standardised
         tokens = torch.cat([self.pose_tokens(x) + self.type_embedding[0],
-                            self.latent_tokens(prev_latents) + self.type_embedding[1]], 1)  # [B, S + A, D]
+                            self.latent_tokens(lat) + self.type_embedding[1]], 1)  # [B, S + A, D]
         h = self.norm(self.transformer(tokens + self.positional.to(tokens)))
-        return self.clamp_latents(self.head(h[:, self.num_slots:]))  # [B, A, L]
+        out = self.latent_mean + self.latent_scale * self.head(h[:, self.num_slots:])  # [B, A, L]
+        return self.clamp_latents(out)
 
     # ------------------------------------------------------------------ initial latents
     def initial_features(self, pose: Tensor) -> Tensor:
@@ -367,7 +385,7 @@ class AppearancePredictor(nn.Module):
         _check("pose", pose, (None, self.pose_dim))
         if self.initial is None or (trained_only and not bool(self.initial_ready)):
             return pose.new_zeros(pose.shape[0], self.num_anchors, self.config.latent_dim)
-        return self.clamp_latents(self.initial(self.initial_features(pose)))
+        return self.clamp_latents(self.latent_mean + self.latent_scale * self.initial(self.initial_features(pose)))
 
     # ------------------------------------------------------------------ streaming
     @torch.no_grad()

@@ -4,6 +4,7 @@
     avatar-train avatar --dataset ds --out runs/mmlps --variant mmlps_dagger     # the baseline
     avatar-train eval --run runs/tiny
     avatar-train export --run runs/tiny --frame 0 --out frame0.ply
+    avatar-train predictor --run runs/tiny          # the autoregressive appearance predictor
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import tyro
 
 from gsavatar.utils.cli import run_reporting_errors
 from gsavatar.train.config import TrainConfig
+from gsavatar.train.predictor_cli import Predictor
 
 
 @dataclass
@@ -87,7 +89,7 @@ class Turntable:
 
 
 def main(argv: list[str] | None = None) -> int:
-    cmd = tyro.extras.subcommand_cli_from_dict({"avatar": Avatar, "eval": Eval, "export": Export, "turntable": Turntable},
+    cmd = tyro.extras.subcommand_cli_from_dict({"avatar": Avatar, "eval": Eval, "export": Export, "turntable": Turntable, "predictor": Predictor},
                                                prog="avatar-train", description=__doc__, args=argv)
     try:
         return run_reporting_errors(cmd.run if isinstance(cmd, Avatar) else cmd.run_)

@@ -73,7 +73,7 @@ class Schedule:
 
 PRESET_SCHEDULES: dict[str, Schedule] = {
     "tiny": Schedule(steps=150, batch_size=2, image_scale=1.0, correctives_step=30, checkpoint_every=50),
-    "small": Schedule(steps=2000, batch_size=2, image_scale=1.0, correctives_step=200, checkpoint_every=250),
+    "small": Schedule(steps=1200, batch_size=2, image_scale=1.0, correctives_step=200, checkpoint_every=200),
     "paper": Schedule(steps=100_000, batch_size=64, image_scale=1.0, correctives_step=500, checkpoint_every=2000),
 }
 """Schedules per preset; the paper trains 100k steps at batch 64 on 8 GPUs."""

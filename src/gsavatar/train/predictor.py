@@ -1,0 +1,421 @@
+"""Training the appearance predictor on an avatar run's encoder latents (paper section 3.4).
+
+Targets: the run's encoder mean ``mu`` sampled at the anchor UVs, for every frame with
+a projected texture (train and test), cached in ``RUN/predictor/targets.npz``.
+
+One training sample is a window of ``T`` consecutive TRAIN frames ``s..s+T-1`` inside
+one contiguous segment (``s`` >= segment start + 1, so frame ``s-1`` has a target). The
+pose history of every frame is its ``N_b`` most recent frames, clamped at the segment
+start (= repeating the first frame, like :meth:`AppearancePredictor.init_state`). The
+predictor is unrolled over the window, feeding back its own (clamped) predictions;
+the first step gets the target latents of ``s-1`` (GT-context pass) or zeros
+(zero-context pass). Both passes run as one doubled batch; their losses are summed:
+per pass L1 on the latents + L1 on the velocity, acceleration and jerk (1st..3rd finite
+differences over the unrolled window) against those of the targets, all weight 1.
+The optional InitialLatentNet is trained alongside on random train frames (L1).
+AdamW (lr 1e-3). Batches depend only on (seed, step), so a resumed run is identical.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from gsavatar.models.predictor import AppearancePredictor, PredictorConfig
+from gsavatar.train.checkpoint import load_checkpoint, save_checkpoint
+from gsavatar.train.sampler import step_generator
+from gsavatar.utils.io import atomic_save_npz, atomic_write_json
+
+TARGETS_FORMAT = "gsavatar-predictor-targets"
+
+
+@dataclass
+class PredictorTrainConfig:
+    """Optimisation of the appearance predictor (model hyper-parameters in ``model``)."""
+
+    steps: int = 2000
+    """Optimisation steps."""
+    batch_size: int = 8
+    """Windows per step (each forwarded twice: GT and zero context)."""
+    window: int = 16
+    """Frames unrolled per window (shortened to the longest train segment - 1)."""
+    lr: float = 1e-3
+    """AdamW learning rate (paper: 1e-3)."""
+    weight_decay: float = 1e-2
+    """AdamW weight decay."""
+    initial_weight: float = 1.0
+    """Weight of the InitialLatentNet L1 loss (its parameters are disjoint from the predictor's)."""
+    detach_feedback: bool = False
+    """Stop gradients through the fed-back predictions (default: backprop through the unroll)."""
+    seed: int = 0
+    """Seed of initialisation and window sampling."""
+    checkpoint_every: int = 250
+    """Steps between checkpoints (and at the end)."""
+    log_every: int = 50
+    """Steps between log lines."""
+    max_steps_this_run: int = 0
+    """Stop after this many steps in this invocation (0 = run to the end); for tests of resuming."""
+    model: PredictorConfig = field(default_factory=PredictorConfig)
+    """Predictor hyper-parameters (``latent_dim`` is taken from the avatar run)."""
+
+
+class TargetLatents(NamedTuple):
+    latents: np.ndarray
+    """Encoder mu sampled at the anchor UVs.  # [F, A, L] float32"""
+    frames: np.ndarray
+    """Capture frame of every row, ascending.  # [F] int64"""
+
+
+class SequenceData(NamedTuple):
+    """Per-frame driving inputs and targets, rows aligned and sorted by frame."""
+
+    frames: Tensor  # [F] int64 capture frame index
+    pose: Tensor  # [F, P]
+    root_rotation: Tensor  # [F, 3]
+    root_translation: Tensor  # [F, 3]
+    latents: Tensor  # [F, A, L]
+
+
+class DualLoss(NamedTuple):
+    total: Tensor
+    """gt + zero (scalar)."""
+    gt: Tensor
+    """Loss of the GT-context pass (scalar)."""
+    zero: Tensor
+    """Loss of the zero-context pass (scalar)."""
+    logs: dict[str, float]
+
+
+# ----------------------------------------------------------------------------- targets
+def predictor_dir(run: Path, out: Path | None = None) -> Path:
+    return Path(out) if out is not None else Path(run) / "predictor"
+
+
+@torch.no_grad()
+def extract_targets(run: Path, out: Path | None = None, device: str = "auto", batch_size: int = 8,
+                    loaded: tuple | None = None) -> TargetLatents:
+    """Encoder latents of every textured frame, cached (keyed on the run's checkpoint step).
+
+    ``loaded``: ``load_run(run)``'s result, to avoid reloading. -> TargetLatents
+    """
+    from gsavatar.data_schema.dataset import ShardReader
+    from gsavatar.prep.common import stage_dir
+    from gsavatar.train.runs import load_run
+
+    net, scene, _, step = loaded if loaded is not None else load_run(run, device)
+    if net.encoder is None:
+        raise ValueError(f"run {run} has no appearance encoder (variant without latents): nothing to predict")
+    path = predictor_dir(run, out) / "targets.npz"
+    reader = ShardReader(stage_dir(scene.dataset, "project-uv"))
+    frames = np.asarray(reader.frames, dtype=np.int64)
+    if path.exists():
+        with np.load(path, allow_pickle=False) as z:
+            hdr = json.loads(str(z["header"]))
+            if hdr.get("format") == TARGETS_FORMAT and hdr.get("step") == step and np.array_equal(z["frames"], frames):
+                return TargetLatents(z["latents"], z["frames"])
+    dev = next(net.parameters()).device
+    out_lat = []
+    for i in range(0, len(frames), batch_size):
+        tex = np.stack([reader.get(int(f))["texture"].astype(np.float32) for f in frames[i : i + batch_size]])
+        tex = torch.from_numpy(tex).permute(0, 3, 1, 2).contiguous().to(dev)  # [b, 3, S, S]
+        out_lat.append(net.latents(tex, None)[0].float().cpu().numpy())  # [b, A, L]
+    lat = np.concatenate(out_lat).astype(np.float32)
+    hdr = {"format": TARGETS_FORMAT, "step": step, "run": str(run)}
+    atomic_save_npz(path, header=np.array(json.dumps(hdr)), latents=lat, frames=frames)
+    return TargetLatents(lat, frames)
+
+
+def sequence_data(motion, targets: TargetLatents, device: torch.device | str = "cpu") -> SequenceData:
+    """Rows of ``targets`` with the capture's motion (``capture.motion``)."""
+    f = torch.as_tensor(targets.frames, dtype=torch.long)
+    t = lambda a: torch.as_tensor(np.asarray(a)[targets.frames], dtype=torch.float32, device=device)  # noqa: E731
+    return SequenceData(f.to(device), t(motion.pose), t(motion.root_rotation), t(motion.root_translation),
+                        torch.as_tensor(targets.latents, dtype=torch.float32, device=device))
+
+
+def split_segments(frames: Tensor | np.ndarray, split_frames) -> list[tuple[int, int]]:
+    """Maximal runs of rows whose frames are in ``split_frames`` and consecutive. -> [(start, end_excl)]"""
+    frames = np.asarray(torch.as_tensor(frames).cpu())
+    keep = np.isin(frames, np.asarray(list(split_frames)))
+    segs, start = [], None
+    for i in range(len(frames) + 1):
+        cont = i < len(frames) and keep[i] and start is not None and frames[i] == frames[i - 1] + 1
+        if start is not None and not cont:
+            segs.append((start, i))
+            start = None
+        if start is None and i < len(frames) and keep[i]:
+            start = i
+    return segs
+
+
+def history_index(rows: Tensor, seg_start: Tensor, history: int) -> Tensor:
+    """Rows of the N_b-frame pose window ending at each row, clamped at its segment start.
+
+    rows [...], seg_start [...] (broadcastable) -> [..., N_b]
+    """
+    off = torch.arange(history - 1, -1, -1, device=rows.device)
+    return torch.maximum(rows[..., None] - off, seg_start[..., None])
+
+
+class WindowSampler:
+    """Uniform over all windows of ``T`` frames ``s..s+T-1`` inside a segment with ``s > start``."""
+
+    def __init__(self, segments: list[tuple[int, int]], window: int) -> None:
+        longest = max((e - s for s, e in segments), default=0)
+        if longest < 2:
+            raise ValueError(f"segments must contain a run of >= 2 consecutive frames, longest is {longest}")
+        self.T = min(window, longest - 1)
+        starts, seg = [], []
+        for s, e in segments:
+            for k in range(s + 1, e - self.T + 1):
+                starts.append(k)
+                seg.append(s)
+        self.starts, self.seg = torch.tensor(starts), torch.tensor(seg)
+
+    def sample(self, batch: int, gen: torch.Generator) -> tuple[Tensor, Tensor]:
+        """-> rows [B, T], seg_start [B]"""
+        i = torch.randint(len(self.starts), (batch,), generator=gen)
+        return self.starts[i, None] + torch.arange(self.T), self.seg[i]
+
+
+# ----------------------------------------------------------------------------- losses
+def unroll(model: AppearancePredictor, data: SequenceData, rows: Tensor, seg_start: Tensor, ctx0: Tensor,
+           detach_feedback: bool = False) -> Tensor:
+    """Autoregressive unroll over windows, feeding back the predictions.
+
+    rows [B, T], seg_start [B], ctx0 [B, A, L] (previous latents of the first frame) -> [B, T, A, L]
+    """
+    dev = data.pose.device
+    hist = history_index(rows.to(dev), seg_start.to(dev)[:, None], model.config.history)  # [B, T, N_b]
+    pose, rr, rt = data.pose[hist], data.root_rotation[hist], data.root_translation[hist]
+    prev, out = ctx0, []
+    for k in range(rows.shape[1]):
+        prev = model(pose[:, k], rr[:, k], rt[:, k], prev.detach() if detach_feedback and k else prev)
+        out.append(prev)
+    return torch.stack(out, 1)
+
+
+def temporal_l1_terms(pred: Tensor, target: Tensor) -> dict[str, Tensor]:
+    """L1 on values and on the 1st/2nd/3rd finite differences over time (where T allows).
+
+    pred, target [B, T, A, L] -> {"l1", "vel", "acc", "jerk"} scalars
+    """
+    terms, p, t = {"l1": (pred - target).abs().mean()}, pred, target
+    for name in ("vel", "acc", "jerk"):
+        p, t = p[:, 1:] - p[:, :-1], t[:, 1:] - t[:, :-1]
+        if p.shape[1] == 0:
+            break
+        terms[name] = (p - t).abs().mean()
+    return terms
+
+
+def dual_context_loss(model: AppearancePredictor, data: SequenceData, rows: Tensor, seg_start: Tensor,
+                      detach_feedback: bool = False) -> DualLoss:
+    """Unrolled losses of the GT-context and zero-context passes (one doubled batch), summed."""
+    B = rows.shape[0]
+    dev = data.latents.device
+    rows = rows.to(dev)
+    gt_prev = data.latents[rows[:, 0] - 1]  # [B, A, L]
+    pred = unroll(model, data, rows.repeat(2, 1), seg_start.repeat(2), torch.cat([gt_prev, torch.zeros_like(gt_prev)]),
+                  detach_feedback)  # [2B, T, A, L]
+    target = data.latents[rows]  # [B, T, A, L]
+    tg, tz = temporal_l1_terms(pred[:B], target), temporal_l1_terms(pred[B:], target)
+    gt, zero = sum(tg.values()), sum(tz.values())
+    logs = {**{f"gt_{k}": float(v.detach()) for k, v in tg.items()}, **{f"zero_{k}": float(v.detach()) for k, v in tz.items()}}
+    return DualLoss(gt + zero, gt, zero, logs)
+
+
+def initial_loss(model: AppearancePredictor, data: SequenceData, rows: Tensor) -> Tensor:
+    """L1 of the InitialLatentNet on frames ``rows`` [M] (0 without the net)."""
+    if model.initial is None:
+        return data.latents.new_zeros(())
+    rows = rows.to(data.pose.device)
+    return (model.initial_latents(data.pose[rows], trained_only=False) - data.latents[rows]).abs().mean()
+
+
+# ----------------------------------------------------------------------------- model setup
+def build_predictor(scene, config: PredictorConfig, latent_dim: int, avatar_pca: str = "local",
+                    seed: int = 0) -> AppearancePredictor:
+    """Predictor for a prepared scene: tokens for the slots active at >= 1 anchor, the avatar's pose PCA."""
+    slots = np.flatnonzero(np.asarray(scene.masks.pose, bool).any(0))
+    pca = {"local": scene.pca_local, "global": scene.pca_global, "global_test_only": scene.pca_global}.get(avatar_pca)
+    pose_pca = None if pca is None else (pca.mean, pca.basis, pca.clamp_sigma * pca.sigma)
+    cfg = dataclasses.replace(config, latent_dim=int(latent_dim),
+                              latent_pca_components=min(config.latent_pca_components, int(latent_dim)))
+    return AppearancePredictor(cfg, scene.hierarchy.num_anchors, slots, scene.capture.rig.pose_dim, pose_pca, seed)
+
+
+@torch.no_grad()
+def prepare_model(model: AppearancePredictor, data: SequenceData, segments: list[tuple[int, int]],
+                  chunk: int = 512) -> dict:
+    """Fit the input normalisation (all train frames' windows) and the latent PCA (train targets)."""
+    rows = torch.cat([torch.arange(s, e) for s, e in segments]).to(data.pose.device)
+    starts = torch.cat([torch.full((e - s,), s) for s, e in segments]).to(data.pose.device)
+    hist = history_index(rows, starts, model.config.history)  # [n, N_b]
+    feats = torch.cat([model.features(data.pose[h], data.root_rotation[h], data.root_translation[h])
+                       for h in hist.split(chunk)])
+    model.fit_input_normalization(feats)
+    pca = model.fit_latent_statistics(data.latents[rows])
+    lat = data.latents[rows].double()
+    total = float(((lat - lat.mean(0)) ** 2).sum())
+    kept = float(((pca.sigma.double() ** 2) * (len(rows) - 1)).sum())
+    return {"train_frames": int(len(rows)), "latent_pca_explained_variance": kept / total if total > 0 else 1.0}
+
+
+def predictor_from_checkpoint(path: Path, device: str | torch.device = "cpu") -> AppearancePredictor:
+    """Rebuild a trained predictor from its checkpoint alone (slots and pose PCA are buffers)."""
+    state = load_checkpoint(path)
+    sd = state["modules"]["predictor"]
+    cfg = PredictorConfig(**state["config"]["model"])
+    pca = (sd["pose_pca_mean"], sd["pose_pca_basis"], sd["pose_pca_limit"]) if "pose_pca_basis" in sd else None
+    m = AppearancePredictor(cfg, sd["latent_mean"].shape[0], sd["pose_slots"], int(state["config"]["pose_dim"]), pca)
+    m.load_state_dict(sd)
+    return m.to(device).eval()
+
+
+# ----------------------------------------------------------------------------- evaluation
+@torch.no_grad()
+def evaluate_predictor(model: AppearancePredictor, data: SequenceData, segments: list[tuple[int, int]]) -> dict:
+    """L1 to the encoder latents on frames 1.. of every segment (frame-weighted means).
+
+    ``teacher_first``: frame 0 from the encoder, then free-running; ``zero_init`` /
+    ``initial_net_init``: free-running from zeros / the InitialLatentNet; ``one_step``:
+    GT previous latents at every frame. Baselines: zero latents, the per-anchor train
+    mean, the clamp's floor |clamp(gt) - gt|, and the encoder itself (0).
+    """
+    was = model.training
+    model.eval()
+    acc: dict[str, float] = {}
+    n = 0
+    use_init = model.initial is not None and bool(model.initial_ready)
+    for s, e in segments:
+        if e - s < 2:
+            continue
+        P, R, Tr, gt = (x[s:e] for x in (data.pose, data.root_rotation, data.root_translation, data.latents))
+        zeros = torch.zeros_like(gt[0])
+        runs = {"teacher_first": model.rollout(P, R, Tr, gt[0], first_is_given=True),
+                "zero_init": model.rollout(P, R, Tr, zeros)}
+        if use_init:
+            runs["initial_net_init"] = model.rollout(P, R, Tr, None)
+        rows = torch.arange(s + 1, e, device=gt.device)[:, None]
+        one = unroll(model, data, rows, torch.full((e - s - 1,), s), data.latents[rows[:, 0] - 1])[:, 0]
+        runs["one_step"] = torch.cat([gt[:1], one])
+        runs["zero_latent_baseline"] = torch.zeros_like(gt)
+        if bool(model.latent_pca_ready):
+            runs["train_mean_baseline"] = model.latent_mean.expand_as(gt)
+            runs["clamp_floor"] = model.clamp_latents(gt)
+        for k, v in runs.items():
+            acc[k] = acc.get(k, 0.0) + float((v[1:] - gt[1:]).abs().mean()) * (e - s - 1)
+        n += e - s - 1
+    out = {f"{k}_l1": v / max(n, 1) for k, v in acc.items()}
+    out["encoder_l1"] = 0.0
+    out["frames"] = n
+    model.train(was)
+    return out
+
+
+# ----------------------------------------------------------------------------- trainer
+class PredictorTrainer:
+    """Loop, AdamW, logging and atomic resumable checkpoints in ``out`` (latest.pt, metrics.jsonl).
+
+    Resuming checks the model config, seed, batch size, window and the avatar checkpoint step
+    the targets came from (``extra_config["targets_step"]``): after the avatar trained further,
+    delete ``latest.pt`` to retrain on the new latents.
+    """
+
+    def __init__(self, model: AppearancePredictor, data: SequenceData, train_segments: list[tuple[int, int]],
+                 cfg: PredictorTrainConfig, out: Path, extra_config: dict | None = None) -> None:
+        self.model, self.data, self.cfg, self.out = model, data, cfg, Path(out)
+        self.sampler = WindowSampler(train_segments, cfg.window)
+        self.train_rows = torch.cat([torch.arange(s, e) for s, e in train_segments])
+        self.optim = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        train = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "model"}
+        self.config = {"train": train, "model": model.config.to_json(), "pose_dim": model.pose_dim,
+                       "num_anchors": model.num_anchors, **(extra_config or {})}
+        self.ckpt = self.out / "latest.pt"
+        self.step = 0
+        if self.ckpt.exists():
+            state = load_checkpoint(self.ckpt, self.config, strict_config_keys=(
+                "model", "num_anchors", "pose_dim", "targets_step", "train.seed", "train.batch_size", "train.window"))
+            model.load_state_dict(state["modules"]["predictor"])
+            self.optim.load_state_dict(state["optimizer"])
+            self.step = int(state["step"])
+
+    def save(self) -> None:
+        save_checkpoint(self.ckpt, step=self.step, config=self.config, modules={"predictor": self.model},
+                        optimizer=self.optim, generator=torch.Generator())
+
+    def loss(self, step: int) -> tuple[Tensor, dict[str, float]]:
+        g = step_generator(self.cfg.seed, step)
+        rows, seg = self.sampler.sample(self.cfg.batch_size, g)
+        d = dual_context_loss(self.model, self.data, rows, seg, self.cfg.detach_feedback)
+        total, logs = d.total, {**d.logs, "gt": float(d.gt.detach()), "zero": float(d.zero.detach())}
+        if self.model.initial is not None and self.cfg.initial_weight > 0:
+            irows = self.train_rows[torch.randint(len(self.train_rows), (self.cfg.batch_size * self.sampler.T,), generator=g)]
+            il = initial_loss(self.model, self.data, irows)
+            total = total + self.cfg.initial_weight * il
+            logs["initial_l1"] = float(il.detach())
+        logs["total"] = float(total.detach())
+        return total, logs
+
+    def train(self) -> dict:
+        cfg = self.cfg
+        self.out.mkdir(parents=True, exist_ok=True)
+        stop = cfg.steps if cfg.max_steps_this_run <= 0 else min(cfg.steps, self.step + cfg.max_steps_this_run)
+        t0, n0, logs = time.perf_counter(), self.step, {}
+        self.model.train()
+        while self.step < stop:
+            loss, logs = self.loss(self.step)
+            self.optim.zero_grad(set_to_none=True)
+            loss.backward()
+            self.optim.step()
+            self.step += 1
+            if self.model.initial is not None and cfg.initial_weight > 0:
+                self.model.initial_ready.fill_(True)
+            if self.step % cfg.log_every == 0 or self.step == stop:
+                rate = (self.step - n0) / (time.perf_counter() - t0)
+                with open(self.out / "metrics.jsonl", "a") as f:
+                    f.write(json.dumps({"step": self.step, **{k: round(v, 6) for k, v in logs.items()}}) + "\n")
+                print(f"[predictor] step {self.step}/{cfg.steps} loss {logs['total']:.4f} gt_l1 {logs['gt_l1']:.4f} "
+                      f"zero_l1 {logs['zero_l1']:.4f} ({rate:.2f} steps/s)", flush=True)
+            if self.step % cfg.checkpoint_every == 0 or self.step == stop:
+                self.save()
+        self.model.eval()
+        return {"step": self.step, **logs, "seconds": time.perf_counter() - t0}
+
+
+def train_predictor(run: Path, cfg: PredictorTrainConfig, out: Path | None = None, device: str = "auto",
+                    evaluate: bool = True) -> dict:
+    """Targets -> model -> train (resumes) -> evaluate on the train and test segments (``eval.json``)."""
+    from gsavatar.train.runs import load_run
+
+    loaded = load_run(run, device)
+    net, scene = loaded[0], loaded[1]
+    dev = next(net.parameters()).device
+    targets = extract_targets(run, out, loaded=loaded)
+    d = predictor_dir(run, out)
+    data = sequence_data(scene.capture.motion, targets, dev)
+    splits = scene.capture.splits
+    train_segs = split_segments(data.frames, splits["train"].frames)
+    model = build_predictor(scene, cfg.model, targets.latents.shape[-1], net.avatar.config.pca, cfg.seed).to(dev)
+    info = prepare_model(model, data, train_segs)
+    print(f"[predictor] {info['train_frames']} train frames in {len(train_segs)} segments, latent PCA keeps "
+          f"{100 * info['latent_pca_explained_variance']:.1f}% of the variance", flush=True)
+    del net
+    trainer = PredictorTrainer(model, data, train_segs, cfg, d, {"run": str(Path(run).resolve()), "targets_step": loaded[3]})
+    summary = trainer.train()
+    if not evaluate or trainer.step < cfg.steps:
+        return summary
+    res = {"step": trainer.step, **info, "train": evaluate_predictor(model, data, train_segs)}
+    if "test" in splits:
+        res["test"] = evaluate_predictor(model, data, split_segments(data.frames, splits["test"].frames))
+    atomic_write_json(d / "eval.json", res)
+    return res

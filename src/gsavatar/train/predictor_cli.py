@@ -1,0 +1,39 @@
+"""``avatar-train predictor``: train the autoregressive appearance predictor of an avatar run.
+
+    avatar-train predictor --run runs/small                     # RUN/predictor/{targets.npz,latest.pt,eval.json}
+    avatar-train predictor --run runs/small --steps 500 --window 8 --model.history 10
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from gsavatar.train.predictor import PredictorTrainConfig
+
+
+@dataclass(kw_only=True)
+class Predictor(PredictorTrainConfig):
+    """Train the appearance predictor on a run's encoder latents; resumes from RUN/predictor/latest.pt."""
+
+    run: Path
+    """Avatar run directory written by ``avatar-train avatar`` (needs the appearance encoder)."""
+    out: Path | None = None
+    """Output directory (default: RUN/predictor)."""
+    device: str = "auto"
+    """``auto`` (CUDA if available), ``cpu`` or ``cuda[:i]``."""
+    evaluate: bool = True
+    """Report the L1 to the encoder latents on train and held-out test frames at the end (eval.json)."""
+
+    def train_config(self) -> PredictorTrainConfig:
+        names = PredictorTrainConfig.__dataclass_fields__
+        return PredictorTrainConfig(**{k: getattr(self, k) for k in names})
+
+    def run_(self) -> None:
+        from gsavatar.train.predictor import train_predictor
+
+        if not Path(self.run).is_dir():
+            raise FileNotFoundError(f"run directory {self.run} does not exist")
+        res = train_predictor(self.run, self.train_config(), self.out, self.device, self.evaluate)
+        print(json.dumps(res, indent=1))

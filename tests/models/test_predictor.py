@@ -1,0 +1,188 @@
+"""Appearance predictor: shapes, causality, latent PCA clamp, streaming == rollout, root-motion invariance."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from gsavatar.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from gsavatar.models.predictor import (
+    AppearancePredictor,
+    PredictorConfig,
+    fit_latent_pca,
+    latent_pca_project,
+    relative_root_motion,
+    window_features,
+)
+
+A, L, P, N = 5, 6, 8, 4
+SMALL = PredictorConfig(history=N, width=32, heads=2, ff=64, latent_dim=L, token_hidden=16, latent_pca_components=4,
+                        initial_hidden=16)
+
+
+def model(**kw) -> AppearancePredictor:
+    torch.manual_seed(0)
+    m = AppearancePredictor(SMALL.__class__(**{**SMALL.to_json(), **kw}), A, [0, 2, 3, 5, 7], P, seed=0)
+    with torch.no_grad():
+        m.head.weight.mul_(10)  # a visibly input-dependent output
+    return m.eval()
+
+
+def seq(T: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    t = torch.arange(T, dtype=torch.float32)[:, None]
+    pose = torch.sin(0.3 * t + torch.rand(1, P, generator=g) * 6) + 0.05 * torch.randn(T, P, generator=g)
+    rot = 0.2 * torch.randn(T, 3, generator=g) + torch.tensor([0.0, 0.1, 0.0]) * t
+    trans = torch.randn(T, 3, generator=g) * 0.1 + torch.tensor([0.03, 0.0, 0.01]) * t
+    return pose, rot, trans
+
+
+def windows(x: torch.Tensor, t: int) -> torch.Tensor:
+    """Window ending at t (first frame repeated before 0). [T, D] -> [1, N, D]"""
+    idx = torch.clamp(torch.arange(t - N + 1, t + 1), min=0)
+    return x[idx][None]
+
+
+def test_shapes_and_argument_errors():
+    m = model()
+    pose, rot, trans = seq(7)
+    out = m(windows(pose, 6).expand(3, -1, -1), windows(rot, 6).expand(3, -1, -1), windows(trans, 6).expand(3, -1, -1),
+            torch.randn(3, A, L))
+    assert out.shape == (3, A, L)
+    assert m.rollout(pose, rot, trans).shape == (7, A, L)
+    lat, st = m.step(m.init_state(pose[0], rot[0], trans[0]), pose[1], rot[1], trans[1])
+    assert lat.shape == (A, L) and st.pose.shape == (N, P) and st.latents.shape == (A, L)
+    with pytest.raises(ValueError, match=r"pose_window must be \[\*, 4, 8\], got \[1, 3, 8\]"):
+        m(pose[None, :3], rot[None, :3], trans[None, :3], torch.zeros(1, A, L))
+    with pytest.raises(ValueError, match="prev_latents"):
+        m(windows(pose, 3), windows(rot, 3), windows(trans, 3), torch.zeros(1, A + 1, L))
+    with pytest.raises(ValueError, match="init_latents"):
+        m.init_state(pose[0], rot[0], trans[0], torch.zeros(A, L + 1))
+
+
+def test_window_features_are_value_velocity_acceleration():
+    x = torch.tensor([[0.0, 1.0, 4.0, 9.0]])[..., None]  # [1, 4, 1]
+    f = window_features(x)[0, 0]
+    assert f.tolist() == [0, 1, 4, 9, 1, 3, 5, 2, 2]
+
+
+def test_causality_future_and_out_of_window_poses_do_not_matter():
+    m = model()
+    pose, rot, trans = seq(12)
+    t = 7
+    prev = torch.randn(1, A, L)
+    ref = m(windows(pose, t), windows(rot, t), windows(trans, t), prev)
+    for frame, same in ((t + 1, True), (t + 3, True), (t - N, True), (t - N + 1, False), (t, False)):
+        p2, r2, s2 = pose.clone(), rot.clone(), trans.clone()
+        p2[frame] += 0.7
+        r2[frame] += 0.3
+        s2[frame] += 0.2
+        out = m(windows(p2, t), windows(r2, t), windows(s2, t), prev)
+        assert torch.equal(out, ref) == same, frame
+    assert not torch.allclose(m(windows(pose, t), windows(rot, t), windows(trans, t), prev + 0.5), ref)
+    # free-running rollout: frames after t never change outputs up to t
+    full = m.rollout(pose, rot, trans, torch.zeros(A, L))
+    p2 = pose.clone()
+    p2[t + 1 :] += 1.0
+    part = m.rollout(p2, rot, trans, torch.zeros(A, L))
+    assert torch.equal(full[: t + 1], part[: t + 1]) and not torch.allclose(full[t + 1 :], part[t + 1 :])
+
+
+def test_streaming_step_equals_rollout():
+    m = model()
+    pose, rot, trans = seq(9)
+    init = torch.randn(A, L)
+    st = m.init_state(pose[0], rot[0], trans[0], init)
+    outs = []
+    for t in range(9):
+        lat, st = m.step(st, pose[t], rot[t], trans[t])
+        outs.append(lat)
+    assert torch.equal(torch.stack(outs), m.rollout(pose, rot, trans, init))
+    # the window-batched path (training / one forward per frame) gives the same numbers
+    prev, ref = init[None], []
+    for t in range(9):
+        prev = m(windows(pose, t), windows(rot, t), windows(trans, t), prev)
+        ref.append(prev[0])
+    torch.testing.assert_close(torch.stack(ref), torch.stack(outs), atol=1e-6, rtol=0)
+    tf = m.rollout(pose, rot, trans, init, first_is_given=True)
+    assert torch.equal(tf[0], init) and tf.shape == (9, A, L)
+
+
+def test_reinit_every_replaces_previous_latents():
+    m = model()
+    pose, rot, trans = seq(6)
+    Z = torch.randn(A, L)
+    out = m.rollout(pose, rot, trans, torch.zeros(A, L), reinit_every=2, reinit_latents=lambda t: Z)
+    ref = m(windows(pose, 4), windows(rot, 4), windows(trans, 4), Z[None])[0]
+    torch.testing.assert_close(out[4], ref, atol=1e-6, rtol=0)
+    out2 = m(windows(pose, 2), windows(rot, 2), windows(trans, 2), Z[None])
+    ref3 = m(windows(pose, 3), windows(rot, 3), windows(trans, 3), out2)[0]
+    torch.testing.assert_close(out[3], ref3, atol=1e-6, rtol=0)
+
+
+def random_rotation(g: torch.Generator) -> torch.Tensor:
+    return axis_angle_to_matrix(torch.randn(3, generator=g, dtype=torch.float64) * 1.5)
+
+
+def test_rigid_transform_of_root_motion_leaves_prediction_unchanged():
+    m = model()
+    pose, rot, trans = seq(N)
+    g = torch.Generator().manual_seed(3)
+    Q, c = random_rotation(g), torch.randn(3, generator=g, dtype=torch.float64) * 2
+    rot2 = matrix_to_axis_angle(Q @ axis_angle_to_matrix(rot.double())).float()
+    trans2 = (trans.double() @ Q.T + c).float()
+    torch.testing.assert_close(relative_root_motion(rot2[None], trans2[None]), relative_root_motion(rot[None], trans[None]),
+                               atol=2e-6, rtol=0)
+    prev = torch.randn(1, A, L)
+    a = m(pose[None], rot[None], trans[None], prev)
+    b = m(pose[None], rot2[None], trans2[None], prev)
+    torch.testing.assert_close(a, b, atol=1e-5, rtol=0)
+    # but root motion inside the window does matter
+    trans3 = trans.clone()
+    trans3[0] += 0.5
+    assert not torch.allclose(m(pose[None], rot[None], trans3[None], prev), a, atol=1e-4)
+
+
+def test_latent_pca_clamp_box():
+    g = torch.Generator().manual_seed(0)
+    lat = torch.randn(200, A, L, generator=g) * torch.linspace(0.1, 2.0, L) + 3.0
+    full = fit_latent_pca(lat, L)
+    lim = 2.0 * full.sigma
+    # full rank: points inside the box are unchanged, outside ones land on the box
+    inside = full.mean + torch.einsum("nak,alk->nal", (torch.rand(10, A, L, generator=g) * 2 - 1) * 0.99 * lim, full.basis)
+    torch.testing.assert_close(latent_pca_project(inside, full.mean, full.basis, lim), inside, atol=1e-5, rtol=0)
+    far = torch.randn(10, A, L, generator=g) * 20
+    c = torch.einsum("nal,alk->nak", latent_pca_project(far, full.mean, full.basis, lim) - full.mean, full.basis)
+    assert (c.abs() <= lim + 1e-4).all() and (c.abs() >= lim - 1e-4).any()
+    # model outputs live in the K-component box, and K-subspace points inside it are unchanged
+    m = model()
+    pca = m.fit_latent_statistics(lat)
+    mlim = m.latent_limit
+    with torch.no_grad():
+        m.head.weight.mul_(100)
+    pose, rot, trans = seq(N)
+    out = m(pose[None].expand(4, -1, -1), rot[None].expand(4, -1, -1), trans[None].expand(4, -1, -1), torch.randn(4, A, L) * 5)
+    c = torch.einsum("nal,alk->nak", out - pca.mean, pca.basis)
+    assert (c.abs() <= mlim + 1e-4).all() and (c.abs() >= mlim - 1e-4).any()
+    resid = (out - pca.mean) - torch.einsum("nak,alk->nal", c, pca.basis)
+    assert resid.abs().max() < 1e-4  # low-rank projection: nothing outside the K-subspace
+    sub = pca.mean + torch.einsum("nak,alk->nal", (torch.rand(10, A, 4, generator=g) * 2 - 1) * 0.99 * mlim, pca.basis)
+    torch.testing.assert_close(m.clamp_latents(sub), sub, atol=1e-5, rtol=0)
+
+
+def test_fit_latent_pca_handles_rank_deficiency():
+    lat = torch.randn(3, A, L)  # 3 frames: at most 2 components
+    pca = fit_latent_pca(lat, 4)
+    assert pca.basis.shape == (A, L, 4) and (pca.sigma[:, 2:] == 0).all() and (pca.basis[:, :, 2:] == 0).all()
+    torch.testing.assert_close(pca.basis[:, :, :2].transpose(1, 2) @ pca.basis[:, :, :2], torch.eye(2).expand(A, 2, 2),
+                               atol=1e-5, rtol=0)
+
+
+def test_initial_latents_zero_until_trained_then_net():
+    m = model()
+    m.fit_latent_statistics(torch.randn(20, A, L) + 1.0)
+    pose, rot, trans = seq(3)
+    assert torch.equal(m.init_state(pose[0], rot[0], trans[0]).latents, torch.zeros(A, L))
+    m.initial_ready.fill_(True)  # untrained net (zero last layer) -> the clamped train mean
+    torch.testing.assert_close(m.init_state(pose[0], rot[0], trans[0]).latents, m.latent_mean, atol=1e-5, rtol=0)
+    assert model(initial_net=False).initial is None
