@@ -1,0 +1,199 @@
+"""``avatar-drive``: drive a trained avatar with a motion and write frames, a video, latents and metrics.
+
+    avatar-drive --run runs/ours --motion capture_b --out drive/b                    # another capture: + metrics
+    avatar-drive --run runs/ours --motion cap --split test --mode reinit --out d     # paper's "re-init. 30"
+    avatar-drive --run runs/ours --motion 01_01.bvh --cameras orbit --out d          # CMU mocap, orbit cameras
+    avatar-drive --run runs/ours --motion m.npz --motion-fps 60 --out d              # resampled to training fps
+
+Outputs in OUT: ``frames/{cam}/{t:06d}.png``, ``drive.mp4`` (cameras side by side),
+``latents.npz`` (latents [T, A, L] + the resampled motion), ``drive.json`` (summary);
+with ground truth (a capture as motion, capture cameras) also ``metrics.json`` and
+``stability.png`` (the paper's figure 7); ``--ramp-up N`` adds ``ramp_up.json/png``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+import tyro
+
+from gsavatar.drive.driver import DriveConfig, Driver, load_predictor_for, motion_inputs, texture_source
+from gsavatar.utils.cli import run_reporting_errors
+from gsavatar.utils.io import atomic_path, atomic_save_npz, atomic_write_json, write_image
+
+
+@dataclass(kw_only=True)
+class DriveArgs(DriveConfig):
+    """Drive a trained avatar with a motion (npz, capture directory or BVH)."""
+
+    run: Path
+    """Run directory of ``avatar-train avatar`` (its predictor in RUN/predictor when trained)."""
+    motion: Path
+    """Driving motion: a motion.npz, a capture directory (ground truth -> metrics) or a .bvh file."""
+    out: Path
+    """Output directory."""
+    motion_fps: float = 0.0
+    """Frame rate of an npz motion (0: from an 'fps' array, a sidecar <name>.json or a capture.json beside it)."""
+    split: str | None = None
+    """Capture motions: drive with this split's frames (e.g. ``test``); default all frames."""
+    start: int = 0
+    """First source frame."""
+    count: int = 0
+    """Source frames to use (BVH: output frames); 0 = to the end."""
+    write_frames: bool = True
+    """Write every render as frames/{cam}/{t:06d}.png."""
+    lpips: Literal["auto", "on", "off"] = "auto"
+    """LPIPS metric: ``auto`` uses it when its weights load, ``on`` requires it, ``off`` skips it."""
+    ramp_up: int = 0
+    """Also measure the first N frames after zero / pose / encoder initialisation (needs ground truth + textures)."""
+
+    def config(self) -> DriveConfig:
+        return DriveConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(DriveConfig)})
+
+
+def _lpips(mode: str, device: torch.device):
+    if mode == "off":
+        return None, "off"
+    try:
+        from gsavatar.metrics.lpips import LPIPS
+
+        m = LPIPS().to(device)
+        return m, m.lpips_name
+    except Exception as e:  # noqa: BLE001 - missing weights wheel etc.
+        if mode == "on":
+            raise ValueError(f"lpips=on but the LPIPS network cannot be loaded: {e}") from None
+        return None, f"off (unavailable: {type(e).__name__})"
+
+
+def _json_safe(obj):
+    """NaN/Inf -> None (strict JSON): NaN = empty mask, +Inf PSNR = identical images."""
+    if isinstance(obj, float):
+        return obj if np.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    return obj
+
+
+def _tile(images: dict[str, torch.Tensor]) -> np.ndarray:
+    """Cameras side by side, padded to even size (yuv420p). -> [H, W, 3] uint8"""
+    H = max(v.shape[0] for v in images.values())
+    cols = []
+    for v in images.values():
+        a = (v.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+        cols.append(np.pad(a, ((0, H - a.shape[0]), (0, 0), (0, 0))))
+    img = np.concatenate(cols, 1)
+    return np.pad(img, ((0, img.shape[0] % 2), (0, img.shape[1] % 2), (0, 0)))
+
+
+def drive(args: DriveArgs) -> dict:
+    """Run ``avatar-drive`` (see module docstring); returns the drive.json summary."""
+    import imageio.v2 as imageio
+
+    from gsavatar.drive.metrics import SequenceMetrics, load_ground_truth, measure_ramp_up, write_ramp_up
+    from gsavatar.drive.motion import load_driving_motion
+    from gsavatar.train.runs import load_run
+    from gsavatar.utils.progress import progress_bar
+
+    cfg = args.config()
+    if args.motion_fps < 0 or args.count < 0 or args.ramp_up < 0:
+        raise ValueError("motion_fps, count and ramp_up must be >= 0")
+    loaded = load_run(args.run, cfg.device)[:3]
+    predictor = "auto"
+    if loaded[0].avatar.latent_in and (cfg.mode != "encoder" or args.ramp_up):
+        predictor = load_predictor_for(args.run)
+    d = Driver(args.run, cfg, loaded=loaded, predictor=predictor)
+    scene = d.scene
+    motion = load_driving_motion(args.motion, scene.capture.rig, d.fps, fps=args.motion_fps or None, start=args.start,
+                                 count=args.count or None, split=args.split)
+    if motion.face is not None and motion.face.shape[1] != d.face_dim:
+        from gsavatar.data_schema import SchemaError
+
+        raise SchemaError(args.motion, "face", f"has {motion.face.shape[1]} columns, the avatar expects {d.face_dim}")
+    gt = motion.gt if cfg.cameras == "capture" else None
+    if motion.gt is not None:
+        d.use_capture_cameras(motion.gt.capture)
+    textures = texture_source(motion, scene, cfg.textures) if d.needs_textures else None
+    lp, lp_name = _lpips(args.lpips, d.device) if gt is not None else (None, "off")
+    acc = SequenceMetrics(lp)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    cams = [v.name for v in d.views]
+    T = motion.num_frames
+    fps_video = cfg.video_fps or motion.fps
+    latents = []
+    t0 = time.perf_counter()
+    video = out / "drive.mp4"
+    with atomic_path(video, suffix=".mp4") as tmp, progress_bar(f"avatar-drive {cfg.mode} ({T} frames)", T) as bar:
+        writer = imageio.get_writer(tmp, fps=fps_video, macro_block_size=1, format="FFMPEG")
+        try:
+            for t in range(T):
+                x = motion_inputs(motion, t, textures(t) if textures is not None and d.texture_needed_at(t) else None)
+                if t == 0:
+                    d.start(x)
+                    cams = [v.name for v in d.views]  # orbit views are placed by start()
+                fr = d.step(x)
+                latents.append(fr.latents.numpy())
+                gts = load_ground_truth(gt.capture, gt.frames[t], cams, cfg.image_scale, d.bg) if gt is not None else {}
+                for c in cams:
+                    g = gts.get(c)
+                    acc.add(t, c, fr.images[c], fr.alphas[c], None if g is None else g[0], None if g is None else g[1])
+                    if args.write_frames:
+                        write_image(out / "frames" / c / f"{t:06d}.png", fr.images[c].numpy())
+                writer.append_data(_tile(fr.images))
+                bar.advance()
+        finally:
+            writer.close()
+    seconds = time.perf_counter() - t0
+    lat = np.stack(latents).astype(np.float32)
+    arrays = {"latents": lat, "pose": motion.pose, "root_rotation": motion.root_rotation,
+              "root_translation": motion.root_translation, "fps": np.float32(motion.fps)}
+    if motion.face is not None:
+        arrays["face"] = motion.face
+    atomic_save_npz(out / "latents.npz", **arrays)
+    summary = acc.summary()
+    info = {
+        "run": str(args.run), "motion": motion.source, "mode": cfg.mode, "frames": T, "fps": motion.fps,
+        "source_fps": motion.source_fps, "resampled": abs(motion.fps - motion.source_fps) > 1e-9,
+        "cameras": cams, "video": str(video), "video_fps": fps_video, "seconds": round(seconds, 3),
+        "ground_truth": gt is not None, "render_change": summary["mean"].get("render_change"),
+        "config": json.loads(json.dumps(dataclasses.asdict(cfg), default=str)),
+    }
+    if gt is not None:
+        fig = acc.write_figure(out / "stability.png")
+        metrics = {"mode": cfg.mode, "lpips_net": lp_name, "gt_frames": gt.frames, **summary,
+                   "stability_figure": None if fig is None else fig.name}
+        atomic_write_json(out / "metrics.json", _json_safe(metrics))
+        info["metrics"] = summary["mean"]
+    if args.ramp_up:
+        tex = textures or texture_source(motion, scene, cfg.textures)
+        res = measure_ramp_up(d, motion, tex, args.ramp_up, with_images=gt is not None)
+        write_ramp_up(_json_safe(res), out)
+        info["ramp_up"] = {m: {"latent_l1_first": v["latent_l1"][0], "latent_l1_last": v["latent_l1"][-1]}
+                           for m, v in res["modes"].items()}
+    atomic_write_json(out / "drive.json", _json_safe(info))
+    print(f"avatar-drive: {T} frames x {len(cams)} cameras in {seconds:.1f}s -> {out}")
+    if gt is not None:
+        print("metrics: " + ", ".join(f"{k} {v:.4f}" for k, v in summary["mean"].items() if v is not None))
+    return info
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``avatar-drive``; returns the exit code (2: bad input, message on stderr)."""
+    try:  # tyro reports parse errors, including DriveConfig's field validation, and exits 2
+        args = tyro.cli(DriveArgs, args=argv, prog="avatar-drive", description=__doc__)
+    except SystemExit as e:
+        return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
+    return run_reporting_errors(lambda: drive(args))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,294 @@
+"""avatar-drive: motion loading (npz / capture / BVH), frame-rate resampling, streaming == batch,
+metrics + figure 7, the CLI end to end, and bad inputs (exit code 2, message names file + field)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from gsavatar.data_schema import SchemaError, load_capture
+from gsavatar.drive.cli import main
+from gsavatar.drive.driver import DriveConfig, Driver, motion_inputs
+from gsavatar.drive.metrics import SequenceMetrics, measure_ramp_up, write_ramp_up
+from gsavatar.drive.motion import _joint_layouts, load_driving_motion, resample_motion
+from gsavatar.models.predictor import AppearancePredictor, PredictorConfig
+
+BVH = Path("/usr/share/assimp/models/BVH/01_01.bvh")
+
+
+# --------------------------------------------------------------------------- fixtures
+@pytest.fixture(scope="module")
+def tiny_run(tiny_dataset, tmp_path_factory) -> Path:
+    from gsavatar.train.cli import main as train_main
+
+    run = tmp_path_factory.mktemp("drive") / "run"
+    assert train_main(["avatar", "--dataset", str(tiny_dataset), "--out", str(run), "--preset", "tiny", "--steps", "3",
+                       "--lpips", "off", "--image-scale", "0.5", "--no-evaluate"]) == 0
+    return run
+
+
+@pytest.fixture(scope="module")
+def loaded(tiny_run):
+    from gsavatar.train.runs import load_run
+
+    return load_run(tiny_run, "cpu")[:3]
+
+
+def small_predictor(net, trained_init: bool = False) -> AppearancePredictor:
+    """An untrained (random) predictor of the real class, small enough for tests."""
+    av = net.avatar
+    cfg = PredictorConfig(history=4, width=16, heads=2, ff=32, latent_dim=av.latent_in, token_hidden=8,
+                          latent_pca_components=4, initial_hidden=16)
+    p = AppearancePredictor(cfg, av.num_anchors, np.arange(0, av.pose_dim, 5), av.pose_dim, seed=1).eval()
+    if trained_init:
+        torch.nn.init.normal_(p.initial.net[-1].weight, std=0.1)
+        p.initial_ready.fill_(True)
+    return p
+
+
+# --------------------------------------------------------------------------- resampling
+def _constant_velocity_motion(rig, n: int, fps: float, seed: int = 0):
+    """Every joint / the root turns at a constant angular velocity about a fixed local axis,
+    translation and face move linearly: slerp/lerp midpoints of this are exact."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / fps
+    pose = np.zeros((n, rig.pose_dim))
+    for kind, sl, seq, signs in _joint_layouts(rig):
+        base = Rotation.from_rotvec(rng.normal(scale=0.3, size=3))
+        R = base * Rotation.from_rotvec(t[:, None] * rng.normal(scale=1.5, size=3)[None])
+        pose[:, sl] = R.as_rotvec() if kind == "aa" else np.unwrap(R.as_euler(seq), axis=0) * signs
+    rr = (Rotation.from_rotvec([0.1, 0.2, 0.3]) * Rotation.from_rotvec(t[:, None] * np.array([[0.0, 2.0, 0.5]]))).as_rotvec()
+    rt = np.array([0.1, 0.9, -0.2]) + t[:, None] * np.array([[0.5, 0.0, -0.3]])
+    face = t[:, None] * np.array([[1.0, -2.0]])
+    return [x.astype(np.float32) for x in (pose, rr, rt, face)]
+
+
+def test_resample_60_to_30_is_every_other_frame_and_15_to_30_slerps_midpoints():
+    from prep_fixtures import arm_rig
+
+    rig = arm_rig()  # euler triplets and an axis-angle joint
+    assert {k for k, *_ in _joint_layouts(rig)} == {"euler3", "aa"}
+    m60 = _constant_velocity_motion(rig, 13, 60.0, seed=1)
+    p, rr, rt, face, times = resample_motion(*m60, rig, 60.0, 30.0)
+    assert len(p) == 7 and not times.alpha.any()
+    for a, b in zip((p, rr, rt, face), m60):
+        assert np.array_equal(a, b[::2])  # bit-exact
+
+    gt30 = _constant_velocity_motion(rig, 9, 30.0, seed=2)
+    m15 = [x[::2] for x in gt30]
+    p, rr, rt, face, times = resample_motion(*m15, rig, 15.0, 30.0)
+    assert len(p) == 9 and np.allclose(times.alpha[1::2], 0.5)
+    for a, b in zip((p, rr, rt, face), gt30):
+        np.testing.assert_allclose(a, b, atol=2e-5)
+    for a, b in zip((p, rr, rt, face), m15):  # source frames copied exactly
+        assert np.array_equal(a[::2], b)
+    # naive per-parameter lerp of the euler angles would not hit the true midpoints
+    lerp = 0.5 * (m15[0][:-1] + m15[0][1:])
+    assert np.abs(lerp - gt30[0][1::2]).max() > 1e-3
+
+
+# --------------------------------------------------------------------------- loading
+def test_load_motion_from_capture_npz_and_bvh(tiny_capture, tmp_path):
+    cap = load_capture(tiny_capture)
+    rig = cap.rig
+    m = load_driving_motion(tiny_capture, rig, cap.fps, split="test")
+    assert m.pose.shape == (3, rig.pose_dim) and m.face.shape[0] == 3
+    assert m.gt is not None and m.gt.frames == [9, 10, 11] and m.fps == cap.fps
+    half = load_driving_motion(tiny_capture, rig, cap.fps / 2)  # 15 -> 7.5: every other frame, GT kept
+    assert half.gt.frames == list(range(0, cap.num_frames, 2))
+    assert np.array_equal(half.pose, cap.motion.pose[::2])
+    double = load_driving_motion(tiny_capture, rig, cap.fps * 2, count=4)  # midpoints: no GT
+    assert double.num_frames == 7 and double.gt is None and double.source_fps == cap.fps
+
+    npz = tmp_path / "walk.npz"
+    np.savez(npz, pose=cap.motion.pose, root_rotation=cap.motion.root_rotation,
+             root_translation=cap.motion.root_translation)
+    with pytest.raises(ValueError, match="frame rate unknown"):
+        load_driving_motion(npz, rig, 15.0)
+    (tmp_path / "walk.json").write_text(json.dumps({"fps": 30.0}))  # sidecar
+    m = load_driving_motion(npz, rig, 15.0)
+    assert m.num_frames == 6 and m.source_fps == 30.0 and m.face is None and m.gt is None
+    assert load_driving_motion(npz, rig, 15.0, fps=15.0).num_frames == cap.num_frames
+
+    if BVH.exists():
+        b = load_driving_motion(BVH, rig, 15.0, start=1040, count=5)
+        assert b.pose.shape == (5, rig.pose_dim) and np.isfinite(b.pose).all() and b.fps == 15.0
+
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, pose=np.zeros((4, rig.pose_dim + 1)), root_rotation=np.zeros((4, 3)), root_translation=np.zeros((4, 3)))
+    with pytest.raises(SchemaError, match="pose") as e:
+        load_driving_motion(bad, rig, 15.0, fps=15.0)
+    assert e.value.field == "pose" and str(bad) in str(e.value)
+    rt = np.zeros((4, 3))
+    rt[2, 1] = np.nan
+    np.savez(bad, pose=np.zeros((4, rig.pose_dim)), root_rotation=np.zeros((4, 3)), root_translation=rt)
+    with pytest.raises(SchemaError, match="frame 2") as e:
+        load_driving_motion(bad, rig, 15.0, fps=15.0)
+    assert e.value.field == "root_translation"
+
+
+# --------------------------------------------------------------------------- driver
+def test_streaming_equals_batch_and_render_afterwards(loaded, tiny_run, tiny_capture):
+    from gsavatar.train.trainer import render_views
+
+    net, scene, tcfg = loaded
+    pred = small_predictor(net)
+    motion = load_driving_motion(tiny_capture, scene.capture.rig, scene.capture.fps, split="test")
+    cfg = DriveConfig(mode="reinit", reinit_every=2, image_scale=0.25)
+    d = Driver(tiny_run, cfg, loaded=loaded, predictor=pred)
+    frames = d.drive(motion)
+    assert [f.t for f in frames] == [0, 1, 2] and list(frames[0].images) == ["full01"]
+
+    # re-implementation: latents by the predictor's own rollout, rendered afterwards
+    from gsavatar.drive.driver import texture_source
+
+    tex = texture_source(motion, scene, None)
+    enc = lambda t: net.latents(tex(t)[None], None)[0][0]  # noqa: E731
+    f = lambda a: torch.from_numpy(np.ascontiguousarray(a))  # noqa: E731
+    ref = pred.rollout(f(motion.pose), f(motion.root_rotation), f(motion.root_translation), init_latents=enc(0),
+                       first_is_given=True, reinit_every=2, reinit_latents=enc)
+    got = torch.stack([fr.latents for fr in frames])
+    assert torch.equal(got, ref)
+    assert torch.equal(got[0], enc(0)) and not torch.equal(got[1], got[0])
+    v = d.views[0]
+    with torch.no_grad():
+        for t, fr in enumerate(frames):
+            x = motion_inputs(motion, t)
+            out = net(x.pose[None], x.root_rotation[None], x.root_translation[None], x.face[None], None, None,
+                      d.sh_degree, True, latents=ref[t][None])
+            col, _ = render_views(out.avatar, v.viewmat[None], v.K[None], v.width, v.height, torch.zeros(1, 3),
+                                  d.sh_degree, tcfg.backend)
+            torch.testing.assert_close(fr.images["full01"], col[0].clamp(0, 1).permute(1, 2, 0), rtol=0, atol=1e-6)
+
+    # other modes, latents only: zero init and pose-conditioned init match the rollout too
+    for mode, init in (("predictor", torch.zeros_like(ref[0])), ("pose_init", None)):
+        p2 = small_predictor(net, trained_init=mode == "pose_init")
+        d2 = Driver(tiny_run, DriveConfig(mode=mode), loaded=loaded, predictor=p2)
+        d2.start(motion_inputs(motion, 0))
+        lat = torch.stack([d2.step(motion_inputs(motion, t), render=False).latents for t in range(3)])
+        assert torch.equal(lat, p2.rollout(f(motion.pose), f(motion.root_rotation), f(motion.root_translation), init))
+
+
+def test_bvh_orbit_driving_and_ramp_up(loaded, tiny_run, tiny_capture, tmp_path):
+    net, scene, _ = loaded
+    pred = small_predictor(net, trained_init=True)
+    if BVH.exists():
+        m = load_driving_motion(BVH, scene.capture.rig, scene.capture.fps, start=1040, count=2)
+        d = Driver(tiny_run, DriveConfig(cameras="orbit", orbit_views=1, orbit_size=24), loaded=loaded, predictor=pred)
+        frames = d.drive(m)
+        img = frames[1].images["orbit00"]
+        assert img.shape == (24, 24, 3) and frames[1].alphas["orbit00"].max() > 0.5  # the avatar is in view
+    motion = load_driving_motion(tiny_capture, scene.capture.rig, scene.capture.fps, count=4)
+    with pytest.raises(ValueError, match="start"):
+        Driver(tiny_run, DriveConfig(), loaded=loaded, predictor=pred).step(motion_inputs(motion, 0))
+    from gsavatar.drive.driver import texture_source
+
+    d = Driver(tiny_run, DriveConfig(image_scale=0.25), loaded=loaded, predictor=pred)
+    res = measure_ramp_up(d, motion, texture_source(motion, scene, None), frames=3, with_images=False)
+    assert set(res["modes"]) == {"predictor", "pose_init", "predictor_encoder_init", "encoder"}
+    assert res["modes"]["predictor_encoder_init"]["latent_l1"][0] == 0.0
+    assert all(v == 0.0 for v in res["modes"]["encoder"]["latent_l1"])
+    js, png = write_ramp_up(res, tmp_path)
+    import cv2
+
+    assert json.loads(js.read_text())["frames"] == 3 and cv2.imread(str(png)) is not None
+
+
+def test_sequence_metrics_zero_error_when_render_is_the_ground_truth():
+    g = torch.rand(3, 16, 16, 3)
+    mask = torch.zeros(16, 16)
+    mask[4:12, 4:12] = 1
+    acc = SequenceMetrics()
+    for t in range(3):
+        acc.add(t, "c", g[t], mask, g[t], mask)
+    s = acc.summary()
+    assert s["mean"]["temporal_error"] == 0.0 and s["mean"]["render_change"] > 0 and s["mean"]["psnr"] == float("inf")
+    acc2 = SequenceMetrics()
+    for t in range(3):
+        acc2.add(t, "c", g[0], mask, g[t], mask)  # frozen render of a changing scene
+    assert acc2.summary()["mean"]["temporal_error"] > 0.1
+
+
+# --------------------------------------------------------------------------- CLI
+def test_cli_encoder_mode_writes_video_latents_metrics_and_figure(tiny_run, tiny_capture, tmp_path):
+    import cv2
+    import imageio.v2 as imageio
+
+    out = tmp_path / "drive"
+    rc = main(["--run", str(tiny_run), "--motion", str(tiny_capture), "--split", "test", "--mode", "encoder",
+               "--image-scale", "0.5", "--lpips", "off", "--out", str(out)])
+    assert rc == 0
+    r = imageio.get_reader(out / "drive.mp4")
+    assert r.count_frames() == 3 and r.get_data(0).shape[:2] == (64, 64)
+    r.close()
+    z = np.load(out / "latents.npz")
+    assert z["latents"].shape[0] == 3 and z["pose"].shape[0] == 3
+    assert sorted(p.name for p in (out / "frames" / "full01").iterdir()) == [f"{t:06d}.png" for t in range(3)]
+    met = json.loads((out / "metrics.json").read_text())
+    assert met["gt_frames"] == [9, 10, 11]
+    for k in ("psnr", "psnr_fg", "ssim", "temporal_error", "render_change"):
+        assert np.isfinite(met["mean"][k]), k
+    assert cv2.imread(str(out / met["stability_figure"])).shape[0] >= 2 * 64  # render + GT rows
+    assert not list(out.glob(".*"))  # no temp files left behind
+
+
+def test_cli_bad_inputs_exit_2_naming_file_and_field(tiny_run, tiny_capture, tmp_path, capsys):
+    P = load_capture(tiny_capture).rig.pose_dim
+    common = ["--out", str(tmp_path / "o"), "--lpips", "off", "--mode", "encoder"]
+    assert main(["--run", str(tmp_path / "nope"), "--motion", str(tiny_capture), *common]) == 2
+    assert "config.json" in capsys.readouterr().err
+
+    wide = tmp_path / "wide.npz"
+    np.savez(wide, pose=np.zeros((3, P + 2)), root_rotation=np.zeros((3, 3)), root_translation=np.zeros((3, 3)), fps=15.0)
+    assert main(["--run", str(tiny_run), "--motion", str(wide), *common]) == 2
+    err = capsys.readouterr().err
+    assert "wide.npz: pose" in err and f"[T, {P}]" in err
+
+    nan = tmp_path / "nan.npz"
+    rr = np.zeros((3, 3))
+    rr[1, 0] = np.nan
+    np.savez(nan, pose=np.zeros((3, P)), root_rotation=rr, root_translation=np.zeros((3, 3)), fps=15.0)
+    assert main(["--run", str(tiny_run), "--motion", str(nan), *common]) == 2
+    err = capsys.readouterr().err
+    assert "nan.npz: root_rotation" in err and "NaN" in err
+
+    assert main(["--run", str(tiny_run), "--motion", str(nan), "--out", str(tmp_path / "o"), "--reinit-every", "0"]) == 2
+    assert "reinit_every" in capsys.readouterr().err
+    good = tmp_path / "good.npz"
+    np.savez(good, pose=np.zeros((3, P)), root_rotation=np.zeros((3, 3)), root_translation=np.zeros((3, 3)), fps=15.0)
+    assert main(["--run", str(tiny_run), "--motion", str(good), *common]) == 2  # encoder mode without textures
+    assert "textures" in capsys.readouterr().err
+    common[-1] = "predictor"  # this run has no trained predictor
+    assert main(["--run", str(tiny_run), "--motion", str(good), *common]) == 2
+    assert "predictor" in capsys.readouterr().err
+    assert not (tmp_path / "o" / "drive.mp4").exists()
+
+
+def test_cli_predictor_mode_loads_the_runs_trained_predictor(tiny_run, tiny_capture, tmp_path):
+    import shutil
+
+    import imageio.v2 as imageio
+
+    from gsavatar.train.predictor import PredictorTrainConfig, train_predictor
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)  # the module's run stays without a predictor
+    model = PredictorConfig(history=4, width=16, heads=2, ff=32, token_hidden=8, initial_hidden=16)
+    train_predictor(run, PredictorTrainConfig(steps=1, batch_size=1, window=2, model=model), device="cpu", evaluate=False)
+    assert (run / "predictor" / "latest.pt").exists()
+    out = tmp_path / "drive"
+    rc = main(["--run", str(run), "--motion", str(tiny_capture), "--mode", "predictor_encoder_init", "--count", "2",
+               "--capture-cameras", "full01", "--image-scale", "0.25", "--lpips", "off", "--no-write-frames",
+               "--out", str(out)])
+    assert rc == 0
+    info = json.loads((out / "drive.json").read_text())
+    assert info["mode"] == "predictor_encoder_init" and info["frames"] == 2 and info["ground_truth"]
+    r = imageio.get_reader(out / "drive.mp4")
+    assert r.count_frames() == 2
+    r.close()
+    assert not (out / "frames").exists()
