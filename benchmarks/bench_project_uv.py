@@ -37,36 +37,10 @@ from gsavatar.data_schema.capture import Camera, Capture
 from gsavatar.geometry.camera import look_at, pixel_rays
 from gsavatar.prep.project_uv import ProjectConfig, UVProjector, load_frame_views
 from gsavatar.prep.uv_atlas import build_texel_map, ensure_uvs
+from gsavatar.geometry.primitives import icosphere
 
 
 # --------------------------------------------------------------------------- built-in scene
-def _icosphere(subdiv: int) -> tuple[np.ndarray, np.ndarray]:
-    t = (1 + 5**0.5) / 2
-    V = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t], [0, 1, -t],
-         [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]
-    F = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2], [10, 7, 6],
-         [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10],
-         [8, 6, 7], [9, 8, 1]]
-    V = [np.array(v, float) / np.linalg.norm(v) for v in V]
-    for _ in range(subdiv):
-        cache: dict = {}
-        nf = []
-
-        def mid(a, b):
-            k = (min(a, b), max(a, b))
-            if k not in cache:
-                m = V[a] + V[b]
-                V.append(m / np.linalg.norm(m))
-                cache[k] = len(V) - 1
-            return cache[k]
-
-        for a, b, c in F:
-            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
-            nf += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
-        F = nf
-    return np.array(V), np.array(F, np.int64)
-
-
 def _albedo(p: np.ndarray) -> np.ndarray:
     """Analytic texture of the rest position p [..., 3] (metres) -> RGB in [0.15, 0.85]."""
     x, y, z = p[..., 0], p[..., 1], p[..., 2]
@@ -82,8 +56,8 @@ def builtin_scene(work: Path, n_views: int, img: int, frames: int, uv_cache: Pat
 
     import open3d as o3d
 
-    Vb, Fb = _icosphere(5)
-    Va, Fa = _icosphere(4)
+    Vb, Fb = icosphere(5)
+    Va, Fa = icosphere(4)
     body = Vb * np.array([0.22, 0.75, 0.14]) + np.array([0.0, 1.0, 0.0])
     arm = Va * np.array([0.05, 0.33, 0.05]) + np.array([0.30, 1.05, 0.06])
     V = np.concatenate([body, arm]).astype(np.float32)

@@ -11,6 +11,7 @@ import pytest
 from gsavatar.data_schema.template import Template
 from gsavatar.prep import uv_atlas
 from gsavatar.prep.uv_atlas import TexelMap, build_texel_map, ensure_uvs, texel_uv_centers, uv_to_texel
+from gsavatar.geometry.primitives import icosphere
 
 # --------------------------------------------------------------------------- fixtures
 def jittered_grid(n: int, lo=(0.05, 0.05), hi=(0.6, 0.7), jitter=0.25, seed=0) -> np.ndarray:
@@ -160,31 +161,6 @@ def test_template_input_and_errors():
         build_texel_map(None, cuv, 0)
 
 # --------------------------------------------------------------------------- xatlas
-def icosphere(subdiv: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    t = (1 + 5**0.5) / 2
-    V = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t], [0, 1, -t],
-         [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]
-    F = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2], [10, 7, 6],
-         [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10],
-         [8, 6, 7], [9, 8, 1]]
-    V = [np.array(v, float) / np.linalg.norm(v) for v in V]
-    for _ in range(subdiv):
-        cache, nf = {}, []
-
-        def mid(a, b):
-            k = (min(a, b), max(a, b))
-            if k not in cache:
-                m = V[a] + V[b]
-                V.append(m / np.linalg.norm(m))
-                cache[k] = len(V) - 1
-            return cache[k]
-
-        for a, b, c in F:
-            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
-            nf += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
-        F = nf
-    return np.array(V, np.float32), np.array(F, np.int64)
-
 def test_ensure_uvs_unwraps_once_and_caches(tmp_path, monkeypatch):
     V, F = icosphere(2)
     t = Template(V, F, np.zeros((len(V), 1), np.int32), np.ones((len(V), 1), np.float32))
