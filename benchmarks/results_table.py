@@ -143,6 +143,9 @@ def main() -> None:
     for rdir, r in loc:
         lines.append(f"| {rdir} | {r['param']} | {r['outside_colour']:.5f} | {r['inside_colour']:.5f} | "
                      f"{r['outside_pos_mm']:.3f} | {r['inside_pos_mm']:.3f} | {r['region_fraction']:.1%} |")
+    notes = a.out.with_name("results_notes.md")
+    if notes.exists():  # the hand-written reading of the numbers, kept beside the regenerated tables
+        lines += ["", notes.read_text().rstrip()]
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
