@@ -55,19 +55,24 @@ def safe_join(root: Path, rel: str, file: Path, fld: str) -> Path:
 
 
 # --------------------------------------------------------------------------- dataset.json
-def read_dataset_json(root: Path) -> dict:
-    path = root / "dataset.json"
-    if not path.exists():
-        return {"format": DATASET_FORMAT, "version": DATASET_VERSION, "capture": None, "stages": {}}
+def read_versioned_json(path: Path, fmt: str, version_key: str, version: int) -> dict:
+    """Parse a JSON object whose ``format`` and ``version_key`` must match; SchemaError names the field."""
     try:
         obj = json.loads(path.read_text())
     except json.JSONDecodeError as e:
         raise SchemaError(path, f"line {e.lineno}", f"invalid JSON: {e.msg}") from None
-    if obj.get("format") != DATASET_FORMAT:
-        raise SchemaError(path, "format", f"expected {DATASET_FORMAT!r}, got {obj.get('format')!r}")
-    if obj.get("version") != DATASET_VERSION:
-        raise SchemaError(path, "version", f"unsupported version {obj.get('version')!r}")
+    if not isinstance(obj, dict) or obj.get("format") != fmt:
+        raise SchemaError(path, "format", f"expected {fmt!r}, got {obj.get('format') if isinstance(obj, dict) else obj!r}")
+    if obj.get(version_key) != version:
+        raise SchemaError(path, version_key, f"unsupported {version_key} {obj.get(version_key)!r} (expected {version})")
     return obj
+
+
+def read_dataset_json(root: Path) -> dict:
+    path = root / "dataset.json"
+    if not path.exists():
+        return {"format": DATASET_FORMAT, "version": DATASET_VERSION, "capture": None, "stages": {}}
+    return read_versioned_json(path, DATASET_FORMAT, "version", DATASET_VERSION)
 
 
 def record_stage(root: Path, stage: str, config: dict, files: list[Path], seconds: float, capture: Path | None = None) -> None:
@@ -195,15 +200,7 @@ def read_manifest(directory: Path) -> dict:
     path = Path(directory) / "manifest.json"
     if not path.exists():
         raise SchemaError(path, "", "manifest not found; run the stage first")
-    try:
-        m = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise SchemaError(path, f"line {e.lineno}", f"invalid JSON: {e.msg}") from None
-    if m.get("format") != SHARDS_FORMAT:
-        raise SchemaError(path, "format", f"expected {SHARDS_FORMAT!r}, got {m.get('format')!r}")
-    if m.get("schema_version") != SHARDS_VERSION:
-        raise SchemaError(path, "schema_version", f"unsupported {m.get('schema_version')!r}")
-    return m
+    return read_versioned_json(path, SHARDS_FORMAT, "schema_version", SHARDS_VERSION)
 
 
 class ShardReader:
