@@ -1,8 +1,9 @@
 """Atomic, resumable, safe-to-load checkpoints.
 
 A checkpoint is one ``torch.save`` file of plain containers and tensors only (state
-dicts, optimizer state, RNG states as uint8 tensors, the step, the config as a JSON
-string), so it loads with ``torch.load(weights_only=True)``: no pickled code runs.
+dicts, optimizer state, the step, the config as a JSON string), so it loads with
+``torch.load(weights_only=True)``: no pickled code runs. No RNG state is stored: the
+trainers derive every random draw from (seed, step), so the step is enough to resume.
 Written through a temp file + rename; ``latest.pt`` is replaced only once a new
 checkpoint is complete, so ``kill -9`` at any point leaves a loadable file.
 """
@@ -22,7 +23,7 @@ CHECKPOINT_VERSION = 1
 
 
 def save_checkpoint(path: str | Path, *, step: int, config: dict, modules: dict[str, torch.nn.Module],
-                    optimizer: torch.optim.Optimizer | None, generator: torch.Generator, extra: dict | None = None) -> None:
+                    optimizer: torch.optim.Optimizer | None, extra: dict | None = None) -> None:
     state = {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
@@ -30,8 +31,6 @@ def save_checkpoint(path: str | Path, *, step: int, config: dict, modules: dict[
         "config": json.dumps(config, sort_keys=True),
         "modules": {k: m.state_dict() for k, m in modules.items()},
         "optimizer": optimizer.state_dict() if optimizer is not None else None,
-        "rng_torch": torch.get_rng_state(),
-        "rng_generator": generator.get_state(),
         "extra": extra or {},
     }
     with atomic_path(path, suffix=".pt") as tmp:

@@ -351,7 +351,7 @@ class PredictorTrainer:
 
     def save(self) -> None:
         save_checkpoint(self.ckpt, step=self.step, config=self.config, modules={"predictor": self.model},
-                        optimizer=self.optim, generator=torch.Generator())
+                        optimizer=self.optim)
 
     def loss(self, step: int) -> tuple[Tensor, dict[str, float]]:
         g = step_generator(self.cfg.seed, step)

@@ -138,7 +138,7 @@ class Trainer:
         if self.rank != 0:
             return
         save_checkpoint(self.ckpt, step=self.step, config=self.config_json(), modules={"net": self.net},
-                        optimizer=self.optim, generator=torch.Generator())
+                        optimizer=self.optim)
 
     # ------------------------------------------------------------------ one step
     def sh_degree(self, step: int) -> int:
