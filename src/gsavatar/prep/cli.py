@@ -32,8 +32,8 @@ class PoseTemplate(StageArgs):
 class UvAtlas(StageArgs):
     """Unwrap the template with xatlas if it has no UVs (cached), build the texel -> (triangle, barycentric) map."""
 
-    tex_size: int = 512
-    """UV texture resolution (paper: 1024)."""
+    tex_size: int = 0
+    """UV texture resolution (0 = derived from the capture's image size; paper: 1024)."""
     gutter_px: float = 1.0
     """Texels within this distance outside a UV triangle still map to it (no holes at seams)."""
 
@@ -114,8 +114,7 @@ class All(StageArgs):
 
     def run(self) -> None:
         stages.pose_template(self)
-        stages.uv_atlas(self, self.project.tex_size, self.project.gutter_px)
-        stages.project_uv(self, self.project)
+        stages.project_uv(self, self.project)  # runs uv-atlas at the (derived) texture size first
         stages.fit_pca(self)
         stages.sample_points(self)
         stages.localize(self, figures=self.figures)

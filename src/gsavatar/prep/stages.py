@@ -49,6 +49,24 @@ def synth(cmd) -> None:
 
 
 # --------------------------------------------------------------------------- uv-atlas
+def auto_tex_size(cap) -> int:
+    """Texture a capture's images can fill: a power of two about twice the largest image side
+    (a texel per half pixel), clamped to [256, 1024] (1024 = the paper's size)."""
+    side = max(max(c.width, c.height) for c in cap.cameras.values())
+    return int(np.clip(2 ** int(np.ceil(np.log2(2 * side))), 256, 1024))
+
+
+def resolve_tex_size(cfg, cap):
+    """``cfg`` (a ProjectConfig) with ``tex_size`` 0 replaced by :func:`auto_tex_size`."""
+    import dataclasses
+
+    if cfg.tex_size:
+        return cfg
+    size = auto_tex_size(cap)
+    print(f"[project-uv] texture size {size}x{size} (derived from the capture's images)")
+    return dataclasses.replace(cfg, tex_size=size)
+
+
 def atlas_config(tex_size: int, gutter_px: float) -> dict:
     return {"tex_size": int(tex_size), "gutter_px": float(gutter_px)}
 
@@ -119,6 +137,7 @@ def project_uv(args: StageArgs, cfg, cameras: str = "train") -> bool:
     from gsavatar.prep.common import stage_config
 
     cap = open_capture(args)
+    cfg = resolve_tex_size(cfg, cap)
     pose_template(args)
     uv_atlas(args, cfg.tex_size, cfg.gutter_px)
     cams = sorted(cap.splits["train"].cameras) if cameras == "train" else sorted(cap.cameras)
