@@ -4,7 +4,9 @@
 
 Expects runs trained on the same dataset (``avatar-train avatar``): ``run_ours`` (with a trained
 predictor, ``avatar-train predictor``), ``run_mmlps`` (``--variant mmlps_dagger``) and, when
-present, ``run_wo_local_pose`` / ``run_wo_local_pca``. Every row drives the held-out TEST frames
+present, ``run_wo_local_pose`` / ``run_wo_local_pca`` and ``run_ours_tinymodel`` (``--preset tiny --steps 1200
+--correctives-step 200``: the same schedule with (64, 64) anchor MLPs instead of (128, 128, 128), for speed
+against error). Every row drives the held-out TEST frames
 of the capture from the capture's held-out cameras (``avatar-drive``) and reports PSNR / SSIM /
 LPIPS, temporal error (mean |(r_t - r_t-1) - (g_t - g_t-1)| inside the mask) and frames/s.
 The locality test (paper fig. 6) perturbs one pose parameter by +0.3 rad at a test frame and
@@ -28,6 +30,7 @@ ROWS = [
     ("Ours (predictor, pose init)", "run_ours", "pose_init"),
     ("Ours (re-init. 30)", "run_ours", "reinit"),
     ("Ours (encoder)", "run_ours", "encoder"),
+    ("Ours, tiny MLPs (64, 64) (encoder)", "run_ours_tinymodel", "encoder"),
     ("MMLPs-dagger", "run_mmlps", "predictor"),
     ("Ours w/o local pose (encoder)", "run_wo_local_pose", "encoder"),
     ("Ours w/o local PCA (encoder)", "run_wo_local_pca", "encoder"),
