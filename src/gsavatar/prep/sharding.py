@@ -13,7 +13,6 @@ import hashlib
 import json
 import multiprocessing
 import os
-import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -96,7 +95,6 @@ def run_sharded(
     mine = [s for s in specs if s.index % info.world == info.rank]
     todo = [s for s in mine if not store.is_complete(s, chash)]
     n_frames = sum(len(s.frames) for s in todo)
-    t0 = time.perf_counter()
     with progress_bar(f"{label} ({len(mine) - len(todo)}/{len(mine)} shards done)", total=n_frames) as bar:
         if workers > 1 and len(todo) > 1:
             # spawn, not fork: a fork after torch/open3d started their thread pools can deadlock
@@ -107,6 +105,5 @@ def run_sharded(
         else:
             for s in todo:
                 bar.advance(_run_one(compute, store, s, chash))
-    _ = time.perf_counter() - t0
     done = all(store.is_complete(s, chash) for s in specs)
     return specs, done
