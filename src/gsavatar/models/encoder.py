@@ -10,6 +10,13 @@ per channel). Two 3x3 convolutions predict ``mu`` and ``log sigma^2`` maps with
 ``N_l`` channels; latents are sampled with the reparameterisation trick in training
 mode and equal ``mu`` in eval mode. ``logvar`` is clamped to ``[-30, 20]``.
 
+The ``log sigma^2`` head starts with zero weights and bias ``logvar_init`` (default -6,
+sigma = 0.05). With PyTorch's default init it would start near 0 (sigma = 1), i.e. noise
+2.3x larger than the initial ``mu`` (std 0.43 on a 512^2 texture), and the decoder would learn to ignore the
+latent before the encoder could shrink it (posterior collapse; measured on the ``small``
+capture: encoder and zero latents changed Gaussian colours by 5e-5). The paper's KL
+weight (1e-6) is far too small to undo that in a short run.
+
 Each anchor reads its local code by bilinear lookup at its UV (:func:`sample_at_uv`).
 """
 
@@ -39,9 +46,13 @@ def encoder_channels(n_down: int = 5, first: int = 8, max_channels: int = 128) -
 
 
 def reparameterize(mu: Tensor, logvar: Tensor, generator: torch.Generator | None = None) -> Tensor:
-    """``mu + exp(logvar / 2) * eps``, ``eps ~ N(0, 1)`` drawn from ``generator``. [...] -> [...]"""
+    """``mu + exp(logvar / 2) * eps``, ``eps ~ N(0, 1)`` drawn from ``generator``. [...] -> [...]
+
+    ``logvar`` is clamped to ``LOGVAR_RANGE`` (as the encoder's head is): exp(logvar / 2)
+    overflows float32 for logvar > ~177, making the sample and its gradient inf/NaN.
+    """
     eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
-    return mu + torch.exp(0.5 * logvar) * eps
+    return mu + torch.exp(0.5 * logvar.clamp(*LOGVAR_RANGE)) * eps
 
 
 def kl_divergence(mu: Tensor, logvar: Tensor) -> Tensor:
@@ -112,6 +123,7 @@ class AppearanceEncoder(nn.Module):
         first_channels: int = 8,
         max_channels: int = 128,
         gn_groups: int = 8,
+        logvar_init: float = -6.0,
     ) -> None:
         super().__init__()
         self.latent_dim = int(latent_dim)
@@ -126,6 +138,8 @@ class AppearanceEncoder(nn.Module):
         self.feature_channels = c_in
         self.mu_head = nn.Conv2d(c_in, latent_dim, 3, padding=1)
         self.logvar_head = nn.Conv2d(c_in, latent_dim, 3, padding=1)
+        nn.init.zeros_(self.logvar_head.weight)
+        nn.init.constant_(self.logvar_head.bias, float(logvar_init))
 
     @property
     def downsample(self) -> int:
