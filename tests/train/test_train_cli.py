@@ -94,15 +94,17 @@ def test_two_gloo_ranks_equal_one_rank(tiny_dataset, tmp_path):
     assert close > 0.99, float(close)
 
 
-def test_baseline_flag_eval_and_export(tiny_dataset, tmp_path, capsys):
-    run = tmp_path / "mmlps"
-    assert main(["avatar", "--dataset", str(tiny_dataset), *FAST, "--steps", "2", "--variant", "mmlps_dagger",
-                 "--out", str(run)]) == 0
+@pytest.mark.parametrize("variant,model_variant", [("mmlps_dagger", "mmlps"), ("nrfgca_dagger", "conv_uv")])
+def test_baseline_flag_eval_and_export(tiny_dataset, tmp_path, capsys, variant, model_variant):
+    run = tmp_path / variant
+    assert main(["avatar", "--dataset", str(tiny_dataset), *FAST, "--steps", "2", "--correctives-step", "0",
+                 "--variant", variant, "--out", str(run)]) == 0
     cfg = json.loads((run / "config.json").read_text())
-    assert cfg["model"]["variant"] == "mmlps" and cfg["model"]["use_latent"] is False
+    assert cfg["model"]["variant"] == model_variant and cfg["model"]["use_latent"] is False
     assert main(["eval", "--run", str(run), "--eval-frames", "1"]) == 0
     res = json.loads((run / "eval" / "metrics.json").read_text())
-    assert res["variant"] == "mmlps_dagger" and 5 < res["train_frames_heldout_cams"]["psnr"] < 60
+    assert res["variant"] == variant and 5 < res["train_frames_heldout_cams"]["psnr"] < 60
+    assert "latent_gain_db" not in res  # no latents in the baselines
     ply = tmp_path / "f0.ply"
     assert main(["export", "--run", str(run), "--frame", "0", "--out", str(ply)]) == 0
     from gsavatar.models.ply import read_ply
@@ -118,3 +120,21 @@ def test_checkpoint_of_another_config_is_refused(tiny_dataset, tmp_path, capsys)
     assert main([*base[:-2], "--steps", "2", "--variant", "mmlps_dagger"]) == 2
     err = capsys.readouterr().err
     assert "latest.pt" in err and "config.model" in err
+
+
+def test_eval_reports_the_latent_gain_and_it_is_zero_when_latents_are_cut(tiny_dataset, tmp_path):
+    from gsavatar.train.runs import evaluate_run, load_run
+
+    run = tmp_path / "ours"
+    assert main(["avatar", "--dataset", str(tiny_dataset), *FAST, "--steps", "2", "--correctives-step", "0",
+                 "--out", str(run)]) == 0
+    assert main(["eval", "--run", str(run), "--eval-frames", "1"]) == 0
+    res = json.loads((run / "eval" / "metrics.json").read_text())
+    gain = res["test_frames_heldout_cams"]["psnr_fg"] - res["test_frames_heldout_cams_mean_latent"]["psnr_fg"]
+    assert res["latent_gain_db"] == pytest.approx(gain)
+    net, scene, cfg, _ = load_run(run, "cpu")
+    L = net.avatar.latent_in
+    with torch.no_grad():
+        net.avatar.mlp.weights[0][:, -L:] = 0  # the anchor MLPs no longer see the latent
+    res = evaluate_run(tmp_path / "cut", 1, loaded=(net, scene, cfg))
+    assert res["latent_gain_db"] == pytest.approx(0.0, abs=1e-9)

@@ -79,10 +79,32 @@ def evaluate_run(run: Path, eval_frames: int = 8, loaded: tuple | None = None) -
         data = ViewDataset(scene, "train", cameras=cams, frames=frames, image_scale=cfg.image_scale,
                            with_texture=net.encoder is not None)
         results[name] = evaluate_views(net, data, dev, sh, cfg.backend, lpips=lp, save_dir=run / "eval" / name)
+    if net.encoder is not None and "test" in splits:
+        # How much the appearance latent buys: the same held-out views with every frame's latents replaced by
+        # the training frames' mean latent. ~0 dB means the avatar ignores its latents.
+        mean_lat = mean_train_latent(net, scene, dev)
+        frames, cams = sets["test_frames_heldout_cams"]
+        data = ViewDataset(scene, "train", cameras=cams, frames=frames, image_scale=cfg.image_scale, with_texture=False)
+        r = evaluate_views(net, data, dev, sh, cfg.backend, latents_fn=lambda f: mean_lat)
+        results["test_frames_heldout_cams_mean_latent"] = r
+        results["latent_gain_db"] = results["test_frames_heldout_cams"]["psnr_fg"] - r["psnr_fg"]
     results["lpips_net"] = getattr(lp, "lpips_name", None) if lp is not None else "off"
     results["variant"] = cfg.variant
     atomic_write_json(run / "eval" / "metrics.json", results)
     return results
+
+
+@torch.no_grad()
+def mean_train_latent(net: AvatarNet, scene, device: torch.device) -> torch.Tensor:
+    """Mean of the encoder's per-anchor latents (mu) over the training frames.  # [A, L]"""
+    data = ViewDataset(scene, "train", cameras=scene.capture.splits["train"].cameras[:1])
+    net.eval()
+    total = None
+    for f in data.frames:
+        tex = data.frame_inputs(f)["texture"][None].to(device)
+        lat = net.latents(tex, None)[0][0]
+        total = lat if total is None else total + lat
+    return total / len(data.frames)
 
 
 @torch.no_grad()
