@@ -246,3 +246,36 @@ def test_device_dtype_agnostic_float64(prep):
     out = av(torch.zeros(1, rig.pose_dim, dtype=torch.float64), torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, 3, dtype=torch.float64))
     assert out.means.dtype == torch.float64
     assert all(b.dtype in (torch.float64, torch.long) for b in av.buffers())
+
+
+def test_nrfgca_dagger_conv_uv_decoder(prep):
+    rig, h, masks, *_ = prep
+    cfg = variant_config(model_preset("tiny", uv_decoder_size=32, uv_decoder_channels=32), "nrfgca_dagger")
+    assert (cfg.variant, cfg.pca, cfg.use_latent, cfg.local_pose) == ("conv_uv", "none", False, False)
+    av = make(prep, cfg)
+    assert av.mlp is None and av.uv_decoder is not None and av.scale_basis.numel() == 0
+    pose = torch.randn(2, rig.pose_dim) * 0.3
+    args = (pose, torch.zeros(2, 3), torch.zeros(2, 3))
+    # the decoder's last conv starts at zero: the model starts as the bias-only avatar
+    a, b = av(*args), av(*args, correctives=False)
+    assert torch.equal(a.means, b.means) and torch.equal(a.sh, b.sh)
+    groups = av.param_groups()
+    assert sum(p.numel() for g in groups for p in g["params"]) == sum(p.numel() for p in av.parameters())
+    with torch.no_grad():
+        av.uv_decoder.head.weight.normal_(0, 0.05)
+    out = av(*args)
+    (out.means.square().mean() + out.sh.square().mean() + out.scales.mean()).backward()
+    for name, p in av.named_parameters():
+        assert p.grad is None or torch.isfinite(p.grad).all(), name
+    assert av.uv_decoder.fc.weight.grad.abs().sum() > 0
+    # no localization: one distant pose parameter moves Gaussians everywhere, unlike 'ours'
+    slot = 0
+    region = torch.from_numpy(masks.pose[:, slot])[torch.from_numpy(h.gauss_anchor_idx)].any(1)
+    assert (~region).any()
+    p2 = pose.clone()
+    p2[:, slot] += 0.5
+    with torch.no_grad():
+        d = (av(p2, *args[1:]).canonical_means - av(*args).canonical_means).norm(dim=-1)[0]
+    assert d[~region].mean() > 1e-6
+    with pytest.raises(ValueError, match="size must be"):
+        make(prep, model_preset("tiny", uv_decoder_size=48, variant="conv_uv", use_latent=False))

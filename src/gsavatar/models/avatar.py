@@ -25,6 +25,10 @@ Canonical Gaussian centre = rest position + 3-NN interpolated control displaceme
 + Gaussian offset; then LBS with the Gaussians' transferred skin weights and the
 *raw* driving pose (PCA only shapes the MLP input). Posed rotation =
 ``polar(blended 3x3) @ R(q)``.
+
+Variant ``conv_uv`` (nRFGCA-dagger) has no anchor MLPs and no bases: a convolutional UV
+decoder of the full pose (:mod:`gsavatar.models.uv_decoder`) gives every Gaussian its
+pre-activation deltas of position, scale, rotation and SH directly, added to the same biases.
 """
 
 from __future__ import annotations
@@ -39,7 +43,9 @@ from gsavatar.data_schema.rig import BODY_GROUPS, Rig
 from gsavatar.geometry.lbs import RigTensors, skinning_transforms
 from gsavatar.models import gaussians as gm
 from gsavatar.models.config import LearningRates, ModelConfig
+from gsavatar.models.encoder import sample_at_uv
 from gsavatar.models.mlp import AnchorMLPs
+from gsavatar.models.uv_decoder import UVDecoder
 from gsavatar.prep.localize import LocalizationMasks
 from gsavatar.prep.pca import PosePCA
 from gsavatar.prep.sample_points import Hierarchy
@@ -129,10 +135,22 @@ class GaussianAvatar(nn.Module):
 
         # --- parameters ------------------------------------------------------------------
         gen = torch.Generator().manual_seed(seed)
-        Bg, Bc, K = cfg.n_basis, cfg.n_ctrl_basis, cfg.num_sh
+        K = cfg.num_sh
         self.latent_in = cfg.latent_dim if cfg.use_latent else 0
-        in_dim = P + cfg.face_dim + self.latent_in
-        self.mlp = AnchorMLPs(A, in_dim, Bg + Bc, cfg.hidden, cfg.mlp_out_init_scale, gen)
+        self.mlp: AnchorMLPs | None = None
+        self.uv_decoder: UVDecoder | None = None
+        if cfg.variant == "conv_uv":
+            if g.uv is None:
+                raise ValueError("variant conv_uv (nRFGCA-dagger) needs UV coordinates of the Gaussians; "
+                                 "the hierarchy has none (template without UVs?)")
+            Bg = Bc = 0  # no anchor bases: the decoder outputs the deltas directly
+            self.register_buffer("gauss_uv", f32(g.uv))  # [G, 2] OBJ convention
+            self._uv_split = {"pos": 3, "scale": 3, "rot": 4, "sh0": 3, "shn": (K - 1) * 3}
+            self.uv_decoder = UVDecoder(P + cfg.face_dim, sum(self._uv_split.values()), cfg.uv_decoder_size,
+                                        first_channels=cfg.uv_decoder_channels)
+        else:
+            Bg, Bc = cfg.n_basis, cfg.n_ctrl_basis
+            self.mlp = AnchorMLPs(A, P + cfg.face_dim + self.latent_in, Bg + Bc, cfg.hidden, cfg.mlp_out_init_scale, gen)
         log_s, q = gm.init_gaussian_params(g.position, g.normal, cfg.scale_max, cfg.init_normal_scale_ratio)
         z = lambda *s: nn.Parameter(torch.zeros(*s))  # noqa: E731
         self.scale_bias = nn.Parameter(f32(log_s))  # [G, 3] log metres
@@ -171,6 +189,20 @@ class GaussianAvatar(nn.Module):
             self.conditioning_pose(pose), self.pose_mask.to(dt), face, self.face_mask.to(dt), self.config.face_dim,
             latents if self.latent_in else None, self.latent_in,
         )
+
+    def uv_deltas(self, pose: Tensor, face: Tensor | None) -> dict[str, Tensor]:
+        """``conv_uv`` only: per-Gaussian pre-activation deltas from the UV decoder.
+
+        pose [B, P] raw radians, face [B, E] or None -> {pos [B,G,3], scale [B,G,3], rot [B,G,4], sh0 [B,G,3],
+        shn [B,G,K-1,3]}
+        """
+        x = self.conditioning_pose(pose)
+        if self.config.face_dim:
+            x = torch.cat([x, face.to(x.dtype) if face is not None else x.new_zeros(x.shape[0], self.config.face_dim)], 1)
+        vals = sample_at_uv(self.uv_decoder(x), self.gauss_uv)  # [B, G, n_out]
+        out = dict(zip(self._uv_split, vals.split(list(self._uv_split.values()), dim=-1)))
+        out["shn"] = out["shn"].reshape(*out["shn"].shape[:2], -1, 3)
+        return out
 
     def _validate(self, pose, root_rotation, root_translation, face, latents, sh_degree) -> None:
         _check("pose", pose, (None, self.pose_dim))
@@ -215,7 +247,10 @@ class GaussianAvatar(nn.Module):
         self._validate(pose, root_rotation, root_translation, face, latents, deg)
         B, Bg = pose.shape[0], self.config.n_basis
         w_g = w_c = None
-        if correctives:
+        d: dict[str, Tensor] = {}
+        if correctives and self.uv_decoder is not None:
+            d = self.uv_deltas(pose, face)
+        elif correctives:
             coeffs = self.mlp(self.anchor_inputs(pose, face, latents))  # [B, A, Bg + Bc]
             w_g = gm.interpolate(coeffs[..., :Bg], self.gauss_anchor_idx, self.gauss_anchor_w)  # [B, G, Bg]
             w_c = gm.interpolate(coeffs[..., Bg:], self.ctrl_anchor_idx, self.ctrl_anchor_w)  # [B, C, Bc]
@@ -223,15 +258,23 @@ class GaussianAvatar(nn.Module):
         offset = gm.interpolate(ctrl_disp, self.gauss_ctrl_idx, self.gauss_ctrl_w)  # [B, G, 3]
         if w_g is not None:
             offset = offset + torch.einsum("bgk,gkd->bgd", w_g, self.gauss_pos_basis)
+        if d:
+            offset = offset + d["pos"]
         canonical = self.rest_means[None] + offset  # [B, G, 3]
 
-        scales = gm.activate_scale(gm.apply_basis(self.scale_bias, self.scale_basis, w_g, B), self.config.scale_max)
-        quats_c = gm.activate_quat(gm.apply_basis(self.rotation_bias, self.rotation_basis, w_g, B))
+        def pre(bias: Tensor, basis: Tensor, key: str) -> Tensor:  # λ + <w, ΔΛ> (+ UV-decoder delta)
+            x = gm.apply_basis(bias, basis, w_g, B)
+            if not d:
+                return x
+            return x + (d[key][:, :, : bias.shape[1]] if key == "shn" else d[key])
+
+        scales = gm.activate_scale(pre(self.scale_bias, self.scale_basis, "scale"), self.config.scale_max)
+        quats_c = gm.activate_quat(pre(self.rotation_bias, self.rotation_basis, "rot"))
         opacities = torch.sigmoid(self.opacity_bias)[None].expand(B, -1)  # [B, G]
-        sh0 = gm.activate_sh0(gm.apply_basis(self.sh0_bias, self.sh0_basis, w_g, B))  # [B, G, 3]
+        sh0 = gm.activate_sh0(pre(self.sh0_bias, self.sh0_basis, "sh0"))  # [B, G, 3]
         n_rest = (deg + 1) ** 2 - 1
         if n_rest:
-            x = gm.apply_basis(self.shn_bias[:, :n_rest], self.shn_basis[:, :, :n_rest], w_g, B)
+            x = pre(self.shn_bias[:, :n_rest], self.shn_basis[:, :, :n_rest], "shn")
             sh = torch.cat([sh0[:, :, None], gm.activate_shn(x, self.config.shn_bound)], dim=2)  # [B, G, K, 3]
         else:
             sh = sh0[:, :, None]
@@ -260,7 +303,8 @@ class GaussianAvatar(nn.Module):
         degree 0) are left out. Use with ``torch.optim.AdamW(groups, eps=1e-15, betas=(0.9, 0.999))``.
         """
         lrs = lrs or LearningRates()
-        groups = [{"name": "mlp", "params": list(self.mlp.parameters()), "lr": lrs.mlp, "weight_decay": lrs.mlp_weight_decay}]
+        net = self.mlp if self.mlp is not None else self.uv_decoder
+        groups = [{"name": "mlp", "params": list(net.parameters()), "lr": lrs.mlp, "weight_decay": lrs.mlp_weight_decay}]
         for attr, lr_name in self._GROUPS:
             p = getattr(self, attr)
             if p.numel():
@@ -273,7 +317,8 @@ class GaussianAvatar(nn.Module):
 
     def parameter_counts(self) -> dict[str, int]:
         """Number of scalars per parameter group (and ``total``)."""
-        out = {"mlp": sum(p.numel() for p in self.mlp.parameters())}
+        net = self.mlp if self.mlp is not None else self.uv_decoder
+        out = {"mlp": sum(p.numel() for p in net.parameters())}
         out.update({a: getattr(self, a).numel() for a, _ in self._GROUPS})
         out["total"] = sum(out.values())
         return out

@@ -15,7 +15,11 @@ w/o local pose         ours      False       local               True
 w/o local PCA          ours      True        global              True
 w/o appearance         ours      True        local               False
 MMLPs-dagger           mmlps     True        global_test_only    False
+nRFGCA-dagger          conv_uv   False       none                False
 =====================  ========  ==========  ==================  ==========
+
+nRFGCA-dagger replaces the anchor MLPs and corrective bases by one convolutional decoder in
+UV space fed the full pose (:mod:`gsavatar.models.uv_decoder`).
 """
 
 from __future__ import annotations
@@ -24,10 +28,10 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Literal
 
-Variant = Literal["ours", "mmlps"]
+Variant = Literal["ours", "mmlps", "conv_uv"]
 PcaMode = Literal["local", "global", "global_test_only", "none"]
 PresetName = Literal["tiny", "small", "paper"]
-VariantName = Literal["ours", "wo_local_pose", "wo_local_pca", "wo_appearance", "mmlps_dagger"]
+VariantName = Literal["ours", "wo_local_pose", "wo_local_pca", "wo_appearance", "mmlps_dagger", "nrfgca_dagger"]
 
 SH_C0 = 0.28209479177387814
 """Band-0 real SH constant: ``colour = SH0 * SH_C0 + 0.5``."""
@@ -53,7 +57,8 @@ class ModelConfig:
     variant: Variant = "ours"
     """``ours``: per-anchor localized pose; ``mmlps``: MMLPs baseline, every anchor sees
     the full pose except the hand/finger parameters, which stay localized ("augmented
-    with our localized face embedding and localized hand/finger pose conditioning")."""
+    with our localized face embedding and localized hand/finger pose conditioning");
+    ``conv_uv``: nRFGCA-dagger, a convolutional UV decoder of the full pose (no anchors)."""
     local_pose: bool = True
     """Multiply each anchor's pose input by its pose mask. False = ablation "w/o local
     pose": every anchor sees every pose parameter (hands included, any variant)."""
@@ -78,6 +83,11 @@ class ModelConfig:
     tiny last layer as well would stall learning (the gradient of each factor of
     ``<w, ΔΛ>`` is proportional to the other)."""
 
+    uv_decoder_size: int = 128
+    """``conv_uv`` only: side of the decoded UV property map (8 x a power of two)."""
+    uv_decoder_channels: int = 128
+    """``conv_uv`` only: channels of the decoder's first 8x8 grid, halved per x2 upsampling down to 32."""
+
     def __post_init__(self) -> None:
         if not self.hidden or any(int(h) <= 0 for h in self.hidden):
             raise ValueError(f"hidden must be a non-empty tuple of positive ints, got {self.hidden!r}")
@@ -88,8 +98,8 @@ class ModelConfig:
             raise ValueError(f"sh_degree must be in [0, 3], got {self.sh_degree}")
         if not self.scale_max > 0:
             raise ValueError(f"scale_max must be > 0 (metres), got {self.scale_max}")
-        if self.variant not in ("ours", "mmlps"):
-            raise ValueError(f"variant must be 'ours' or 'mmlps', got {self.variant!r}")
+        if self.variant not in ("ours", "mmlps", "conv_uv"):
+            raise ValueError(f"variant must be 'ours', 'mmlps' or 'conv_uv', got {self.variant!r}")
         if self.pca not in ("local", "global", "global_test_only", "none"):
             raise ValueError(f"pca must be local/global/global_test_only/none, got {self.pca!r}")
         if self.face_dim < 0:
@@ -162,6 +172,7 @@ def variant_config(base: ModelConfig, name: VariantName) -> ModelConfig:
         "wo_local_pca": dict(variant="ours", local_pose=True, pca="global", use_latent=True),
         "wo_appearance": dict(variant="ours", local_pose=True, pca="local", use_latent=False),
         "mmlps_dagger": dict(variant="mmlps", local_pose=True, pca="global_test_only", use_latent=False),
+        "nrfgca_dagger": dict(variant="conv_uv", local_pose=False, pca="none", use_latent=False),
     }
     if name not in table:
         raise ValueError(f"unknown variant {name!r}; expected one of {sorted(table)}")

@@ -14,6 +14,8 @@ Pipeline for one batch of frames:
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
@@ -51,7 +53,7 @@ def pca_mode_for(mode: str, training: bool) -> str:
 def effective_pose_mask(pose_mask: np.ndarray, slot_groups: np.ndarray, hand_groups: list[int], variant: str, local_pose: bool) -> np.ndarray:
     """Per-anchor pose-input mask for a model variant.
 
-    - ``local_pose=False`` (ablation "w/o local pose"): all ones.
+    - ``local_pose=False`` (ablation "w/o local pose") or ``conv_uv`` (nRFGCA-dagger): all ones.
     - ``ours``: the localization mask.
     - ``mmlps``: all ones, except the hand/finger slots (``slot_groups`` in
       ``hand_groups``), which keep their localization columns.
@@ -59,7 +61,7 @@ def effective_pose_mask(pose_mask: np.ndarray, slot_groups: np.ndarray, hand_gro
     pose_mask [A, P] bool, slot_groups [P] int -> [A, P] bool
     """
     pose_mask = np.asarray(pose_mask, bool)
-    if not local_pose:
+    if not local_pose or variant == "conv_uv":
         return np.ones_like(pose_mask)
     if variant == "ours":
         return pose_mask.copy()
@@ -130,7 +132,10 @@ def apply_basis(bias: Tensor, basis: Tensor | None, coeffs: Tensor | None, batch
 # --- activations ----------------------------------------------------------------------
 def activate_scale(x: Tensor, scale_max: float) -> Tensor:
     """``min(exp(x), scale_max)``, metres. [...] -> [...]"""
-    return torch.clamp(torch.exp(x), max=scale_max)
+    # Clamp before exp too: exp(x) overflows for x > ~88 (float32), and a clamp after
+    # it alone would multiply its zero gradient by exp's inf partial (NaN). The outer
+    # clamp only absorbs the last-ulp rounding of exp(log(scale_max)).
+    return torch.clamp(torch.exp(torch.clamp(x, max=math.log(scale_max))), max=scale_max)
 
 
 def activate_quat(x: Tensor) -> Tensor:
