@@ -72,6 +72,10 @@ def quat_to_axis_angle(q: Tensor) -> Tensor:
 
 def quat_to_matrix(q: Tensor, eps: float = 1e-12) -> Tensor:
     """Quaternion wxyz (any norm; zero -> identity) -> rotation matrix. q: [..., 4] -> [..., 3, 3]."""
+    # R is scale invariant: dividing by the detached largest component keeps |q| from
+    # overflowing (float32: |q| > ~1e19 gave n = inf, q / n = 0 and silently R = I).
+    peak = q.detach().abs().amax(dim=-1, keepdim=True)
+    q = q / torch.where(peak > 1.0, peak, torch.ones_like(peak))
     n = q.norm(dim=-1, keepdim=True)
     ident = torch.zeros_like(q)
     ident[..., 0] = 1.0

@@ -48,11 +48,12 @@ def encoder_channels(n_down: int = 5, first: int = 8, max_channels: int = 128) -
 def reparameterize(mu: Tensor, logvar: Tensor, generator: torch.Generator | None = None) -> Tensor:
     """``mu + exp(logvar / 2) * eps``, ``eps ~ N(0, 1)`` drawn from ``generator``. [...] -> [...]
 
-    ``logvar`` is clamped to ``LOGVAR_RANGE`` (as the encoder's head is): exp(logvar / 2)
-    overflows float32 for logvar > ~177, making the sample and its gradient inf/NaN.
+    ``logvar`` is clamped above at ``LOGVAR_RANGE[1]`` (as the encoder's head is):
+    exp(logvar / 2) overflows float32 for logvar > ~177, making the sample inf and its
+    gradient NaN. Very negative values need no clamp (the noise just vanishes).
     """
     eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
-    return mu + torch.exp(0.5 * logvar.clamp(*LOGVAR_RANGE)) * eps
+    return mu + torch.exp(0.5 * logvar.clamp(max=LOGVAR_RANGE[1])) * eps
 
 
 def kl_divergence(mu: Tensor, logvar: Tensor) -> Tensor:

@@ -132,14 +132,19 @@ def apply_basis(bias: Tensor, basis: Tensor | None, coeffs: Tensor | None, batch
 # --- activations ----------------------------------------------------------------------
 def activate_scale(x: Tensor, scale_max: float) -> Tensor:
     """``min(exp(x), scale_max)``, metres. [...] -> [...]"""
-    # Clamp before exp too: exp(x) overflows for x > ~88 (float32), and a clamp after
-    # it alone would multiply its zero gradient by exp's inf partial (NaN). The outer
-    # clamp only absorbs the last-ulp rounding of exp(log(scale_max)).
-    return torch.clamp(torch.exp(torch.clamp(x, max=math.log(scale_max))), max=scale_max)
+    # exp(x) overflows for x > ~88 (float32) and the clamp's zero gradient times exp's
+    # inf partial is NaN. Capping x one unit above log(scale_max) first keeps exp finite
+    # without changing any value (the outer clamp still gives exactly scale_max).
+    return torch.clamp(torch.exp(torch.clamp(x, max=math.log(scale_max) + 1.0)), max=scale_max)
 
 
 def activate_quat(x: Tensor) -> Tensor:
     """Normalised wxyz quaternion. [..., 4] -> [..., 4]"""
+    # Normalising is scale invariant, so dividing by the detached largest component
+    # first changes neither the value nor the gradient, but keeps |x| from overflowing
+    # (float32: |x| > ~1e19 had norm inf and silently became the zero quaternion).
+    peak = x.detach().abs().amax(dim=-1, keepdim=True)
+    x = x / torch.where(peak > 1.0, peak, torch.ones_like(peak))
     return x / x.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 

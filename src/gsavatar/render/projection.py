@@ -56,6 +56,11 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:
     Returns:
         Tensor  # [..., 3, 3] rotation taking the Gaussian's local axes to the parent frame
     """
+    # R is invariant to the scale of q, so dividing by a constant (detached) max
+    # component changes neither R nor its gradient, but keeps |q|^2 below overflow
+    # for huge quaternions (float32: |q| > ~1e19 made R NaN via 0 * inf).
+    peak = quats.detach().abs().amax(dim=-1, keepdim=True)
+    quats = quats / torch.where(peak > 1.0, peak, torch.ones_like(peak))
     w, x, y, z = quats.unbind(-1)
     # Use the homogeneous form R = I + 2/|q|^2 * (...) instead of normalising q
     # first: numerators are quadratic in q, so the map and its gradient stay
@@ -158,6 +163,17 @@ def project_gaussians(
     # accurate for needle-like or huge Gaussians where a*c - b^2 cancels badly.
     factor = covariance_factor(quats, scales)  # [N, 3, 3]
     tmat = jac @ rot_cw @ factor[None]  # [C, N, 2, 3]
+    # det below is quartic in tmat: cap each footprint's pixel-space extent at
+    # finfo.max^(1/5) (float32: 5e7 px, float64: 1e61 px) so it cannot overflow.
+    # Without the cap, huge Gaussians (float32: std > ~1e9 px) got det = inf, were
+    # culled, and their zero upstream gradient met inf partials (0 * inf = NaN).
+    # Capped footprints still cover any image uniformly (conic ~ 1e-15), and the
+    # detached factor is exactly 1 for every Gaussian below the cap.
+    extent_cap = torch.finfo(tmat.dtype).max ** 0.2
+    with torch.no_grad():
+        peak_px = tmat.abs().amax(dim=(-2, -1), keepdim=True)
+        shrink = extent_cap / peak_px.clamp_min(extent_cap)
+    tmat = tmat * shrink
     r0, r1 = tmat[..., 0, :], tmat[..., 1, :]
     cov_a = (r0 * r0).sum(-1)
     cov_b = (r0 * r1).sum(-1)
@@ -173,9 +189,18 @@ def project_gaussians(
     det_orig = (minors * minors).sum(-1)
     cov_a = cov_a + eps2d
     cov_c = cov_c + eps2d
-    # det(cov + eps I) = det(cov) + eps tr(cov) + eps^2 >= eps^2 > 0 analytically;
-    # the clamp only guards against overflow/underflow of extreme inputs.
-    det = (det_orig + eps2d * (cov_a + cov_c - eps2d)).clamp_min(1e-10)
+    # det(cov + eps I) = det(cov) + eps tr(cov) + eps^2 >= eps^2 > 0 analytically
+    # (0.09 by default). With eps2d ~ 0 a needle or flat footprint is (nearly)
+    # singular: gsplat's CUDA kernel inverts det as is and culls det <= 0. A floor
+    # (gsplat's torch reference clamps at 1e-10) would blow a sub-pixel footprint up
+    # into a blob tens of pixels wide. Instead cull where d(conic)/d(det), at most
+    # max(a, c) / det^2, exceeds sqrt(finfo.max) (float32: footprints below ~1e-4 px
+    # std), so that neither the conic nor its gradient can overflow; culled entries
+    # get a finite placeholder with zero gradient. Never triggers for eps2d >= ~1e-4.
+    det = det_orig + eps2d * (cov_a + cov_c - eps2d)
+    with torch.no_grad():
+        invertible = (det > 0) & ((torch.maximum(cov_a, cov_c) / det) / det < torch.finfo(det.dtype).max ** 0.5)
+    det = torch.where(invertible, det, torch.ones_like(det))
     conics = torch.stack([cov_c / det, -cov_b / det, cov_a / det], dim=-1)
 
     means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], dim=-1)  # [C, N, 2]
@@ -194,6 +219,7 @@ def project_gaussians(
             in_depth
             & (opac >= ALPHA_THRESHOLD)
             & ((rad_x > 0) | (rad_y > 0))
+            & invertible
             & torch.isfinite(det)
             & (mx + rad_x > 0)
             & (mx - rad_x < width)

@@ -32,6 +32,15 @@ from torch import Tensor
 
 # Guards 0/0 when a mask is empty (the loss is then 0, not NaN).
 _MASK_EPS = 1e-8
+# kl_loss continues exp(logvar) linearly above this (value and slope match): exact for
+# every logvar the encoder can emit (it clamps to <= 20), finite with a positive
+# gradient beyond (exp overflows float32 above ~88, giving inf loss and NaN steps).
+_KL_LOGVAR_LINEAR = 50.0
+
+
+def _reduce_dtype(t: Tensor) -> Tensor:
+    """float16/bfloat16 -> float32 (sums over ~1e5 elements overflow float16's 65504)."""
+    return t.float() if t.is_floating_point() and t.element_size() < 4 else t
 
 
 @dataclass
@@ -77,7 +86,7 @@ def l1_loss(pred: Tensor, gt: Tensor) -> Tensor:
         Tensor  # [] scalar
     """
     _check_same_shape("pred", pred, "gt", gt)
-    return (pred - gt).abs().mean()
+    return (_reduce_dtype(pred) - _reduce_dtype(gt)).abs().mean()
 
 
 def erode_mask(mask: Tensor, px: int) -> Tensor:
@@ -119,6 +128,7 @@ def opacity_loss(alpha: Tensor, eroded_mask: Tensor) -> Tensor:
     if alpha.ndim != 4 or alpha.shape[1] != 1:
         raise ValueError(f"alpha must be [B, 1, H, W], got {tuple(alpha.shape)}")
     _check_same_shape("alpha", alpha, "eroded_mask", eroded_mask)
+    alpha = _reduce_dtype(alpha)
     m = eroded_mask.to(alpha.dtype)
     return (m * (1.0 - alpha)).sum() / m.sum().clamp_min(_MASK_EPS)
 
@@ -137,7 +147,7 @@ def scale_loss(scales: Tensor, threshold: float) -> Tensor:
         raise ValueError(f"scales must be [B, G, 3] (or [..., 3]), got {tuple(scales.shape)}")
     if not threshold >= 0:
         raise ValueError(f"threshold must be >= 0, got {threshold}")
-    return F.relu(scales.amax(dim=-1) - threshold).mean()
+    return F.relu(_reduce_dtype(scales).amax(dim=-1) - threshold).mean()
 
 
 def cpt_smoothness_loss(ctrl_disp: Tensor, neighbors: Tensor) -> Tensor:
@@ -158,6 +168,7 @@ def cpt_smoothness_loss(ctrl_disp: Tensor, neighbors: Tensor) -> Tensor:
     if neighbors.dtype.is_floating_point or neighbors.dtype == torch.bool:
         raise ValueError(f"neighbors must be an integer tensor, got {neighbors.dtype}")
     nb = neighbors.to(device=ctrl_disp.device, dtype=torch.long)
+    ctrl_disp = _reduce_dtype(ctrl_disp)
     diff = ctrl_disp[:, :, None, :] - ctrl_disp[:, nb, :]  # [B, C, n, 3]
     return diff.square().sum(-1).mean()
 
@@ -166,7 +177,9 @@ def kl_loss(mu: Tensor, logvar: Tensor) -> Tensor:
     """KL(N(mu, diag(exp(logvar))) || N(0, I)), summed per sample, averaged over the batch.
 
     ``0.5 * sum(mu^2 + exp(logvar) - 1 - logvar)``. Not clamped (clamping would
-    hide the gradient); finite for |logvar| up to ~80 in float32.
+    hide the gradient): above ``logvar = 50`` exp is continued linearly instead
+    (same value and slope there), so loss and gradient stay finite for any finite
+    input (tested to ±1e4). float16/bfloat16 inputs are reduced in float32.
 
     Args:
         mu: Tensor  # [B, ...] posterior means
@@ -178,7 +191,10 @@ def kl_loss(mu: Tensor, logvar: Tensor) -> Tensor:
     _check_same_shape("mu", mu, "logvar", logvar)
     if mu.ndim < 1 or mu.shape[0] == 0:
         raise ValueError(f"mu must be [B, ...] with B >= 1, got {tuple(mu.shape)}")
-    kl = 0.5 * (mu.square() + logvar.exp() - 1.0 - logvar)  # [B, ...]
+    mu, logvar = _reduce_dtype(mu), _reduce_dtype(logvar)
+    lv_capped = logvar.clamp(max=_KL_LOGVAR_LINEAR)
+    var = lv_capped.exp() * (1.0 + (logvar - lv_capped))  # exp(logvar) up to the cap, then linear
+    kl = 0.5 * (mu.square() + var - 1.0 - logvar)  # [B, ...]
     return kl.flatten(1).sum(1).mean() if kl.ndim > 1 else kl.mean()
 
 
