@@ -131,6 +131,8 @@ def _read_json(path: Path):
         return json.loads(path.read_text())
     except json.JSONDecodeError as e:
         raise SchemaError(path, f"line {e.lineno}", f"invalid JSON: {e.msg}") from None
+    except UnicodeDecodeError:
+        raise SchemaError(path, "", "not a UTF-8 JSON text file") from None
 
 
 def _matrix(v, shape: tuple[int, ...], file: Path, fld: str) -> np.ndarray:
@@ -175,28 +177,31 @@ def parse_calibration(obj, file: Path) -> dict[str, Camera]:
     return cams
 
 
+def _real_array(a: np.ndarray, file: Path, fld: str) -> np.ndarray:
+    """``a`` as float32; SchemaError naming the field unless it holds real numbers (ints, floats, bools)."""
+    if a.dtype.kind not in "biuf":
+        raise SchemaError(file, fld, f"expected an array of real numbers, got dtype {a.dtype}")
+    return a.astype(np.float32)
+
+
 def load_motion(path: Path, num_frames: int, pose_dim: int) -> Motion:
-    if not path.exists():
-        raise SchemaError(path, "", "file not found")
-    try:
-        z = np.load(path)
-    except (OSError, ValueError) as e:
-        raise SchemaError(path, "", f"cannot read npz: {e}") from None
-    with z:
-        arrays = {}
-        for key, width in (("pose", pose_dim), ("root_rotation", 3), ("root_translation", 3)):
-            if key not in z.files:
-                raise SchemaError(path, key, f"missing; has {sorted(z.files)}")
-            a = np.asarray(z[key])
-            if a.ndim != 2 or a.shape != (num_frames, width):
-                raise SchemaError(path, key, f"expected shape [{num_frames}, {width}], got {list(a.shape)}")
-            arrays[key] = a.astype(np.float32)
-        face = None
-        if "face" in z.files:
-            face = np.asarray(z["face"], dtype=np.float32)
-            if face.ndim != 2 or face.shape[0] != num_frames:
-                raise SchemaError(path, "face", f"expected shape [{num_frames}, E], got {list(face.shape)}")
-            arrays["face"] = face
+    from gsavatar.utils.io import read_npz
+
+    z = read_npz(path)
+    arrays = {}
+    for key, width in (("pose", pose_dim), ("root_rotation", 3), ("root_translation", 3)):
+        if key not in z:
+            raise SchemaError(path, key, f"missing; has {sorted(z)}")
+        a = z[key]
+        if a.ndim != 2 or a.shape != (num_frames, width):
+            raise SchemaError(path, key, f"expected shape [{num_frames}, {width}], got {list(a.shape)}")
+        arrays[key] = _real_array(a, path, key)
+    face = None
+    if "face" in z:
+        face = z["face"]
+        if face.ndim != 2 or face.shape[0] != num_frames:
+            raise SchemaError(path, "face", f"expected shape [{num_frames}, E], got {list(face.shape)}")
+        face = arrays["face"] = _real_array(face, path, "face")
     for key, a in arrays.items():
         bad = ~np.isfinite(a)
         if bad.any():

@@ -17,6 +17,8 @@ the dataset root.
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
 import time
 from dataclasses import dataclass
@@ -25,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from gsavatar.data_schema.errors import SchemaError
-from gsavatar.utils.io import atomic_path, atomic_write_json, sha256_file
+from gsavatar.utils.io import NPZ_READ_ERRORS, atomic_path, atomic_write_json, sha256_file
 
 DATASET_FORMAT = "gsavatar-dataset"
 DATASET_VERSION = 1
@@ -61,6 +63,8 @@ def read_versioned_json(path: Path, fmt: str, version_key: str, version: int) ->
         obj = json.loads(path.read_text())
     except json.JSONDecodeError as e:
         raise SchemaError(path, f"line {e.lineno}", f"invalid JSON: {e.msg}") from None
+    except UnicodeDecodeError:
+        raise SchemaError(path, "", "not a UTF-8 JSON text file") from None
     if not isinstance(obj, dict) or obj.get("format") != fmt:
         raise SchemaError(path, "format", f"expected {fmt!r}, got {obj.get('format') if isinstance(obj, dict) else obj!r}")
     if obj.get(version_key) != version:
@@ -109,11 +113,18 @@ def stage_complete(root: Path, stage: str, config: dict | None = None, check_fil
 
 
 def stage_path(root: Path, stage: str, name: str) -> Path:
-    """Path of a stage output file; raises SchemaError if the stage has not been run."""
+    """Path of a stage output file; raises SchemaError if the stage has not been run or the file
+    no longer matches the checksum its stage recorded (single-file outputs are small: cheap to hash)."""
     obj = read_dataset_json(root)
     if stage not in obj["stages"]:
         raise SchemaError(root / "dataset.json", f"stages.{stage}", f"stage not run yet: run `avatar-prep {stage}` first")
-    return root / stage.replace("-", "_") / name
+    rel = f"{stage.replace('-', '_')}/{name}"
+    path = root / rel
+    digest = obj["stages"][stage].get("files", {}).get(rel)
+    if digest is not None and path.exists() and sha256_file(path) != digest:
+        raise SchemaError(path, "sha256", f"checksum mismatch with dataset.json stages.{stage}: the file is corrupt or was "
+                                          f"changed; re-run `avatar-prep {stage} --force`")
+    return path
 
 
 # --------------------------------------------------------------------------- shards
@@ -218,6 +229,7 @@ class ShardReader:
             for k, f in enumerate(s["frames"]):
                 self.where[int(f)] = (si, k)
         self._cache: tuple[int, dict[str, np.ndarray]] | None = None
+        self._verified: set[int] = set()
 
     @property
     def frames(self) -> list[int]:
@@ -230,8 +242,19 @@ class ShardReader:
         if self._cache is None or self._cache[0] != si:
             s = self.manifest["shards"][si]
             p = safe_join(self.dir, s["file"], self.dir / "manifest.json", f"shards[{si}].file")
-            with np.load(p) as z:
-                self._cache = (si, {n: z[n] for n in z.files})
+            if not p.exists():
+                raise SchemaError(p, "", "shard listed in manifest.json is missing; re-run the stage")
+            data = p.read_bytes()
+            # each shard is checked once per reader, when first read (the bytes are in memory anyway)
+            if si not in self._verified:
+                if hashlib.sha256(data).hexdigest() != s["sha256"]:
+                    raise SchemaError(p, "sha256", "checksum mismatch with manifest.json: shard is corrupt; re-run the stage")
+                self._verified.add(si)
+            try:
+                with np.load(io.BytesIO(data), allow_pickle=False) as z:
+                    self._cache = (si, {n: z[n] for n in z.files})
+            except NPZ_READ_ERRORS as e:
+                raise SchemaError(p, "", f"cannot read shard: {e}") from None
         return {n: a[k] for n, a in self._cache[1].items() if n != "frames"}
 
 

@@ -18,3 +18,9 @@ class SchemaError(ValueError):
         self.message = message
         where = f"{self.file}: {field}" if field else self.file
         super().__init__(f"{where}: {message}")
+
+    def __reduce__(self):
+        # Rebuild from the three fields: the default (type, self.args) would call
+        # SchemaError(message) and fail, so an error raised in a prep worker process
+        # would reach the parent as BrokenProcessPool instead of this message.
+        return type(self), (self.file, self.field, self.message)

@@ -225,4 +225,6 @@ def load_rig(path: str | Path) -> Rig:
         raise SchemaError(path, "", "file not found") from None
     except json.JSONDecodeError as e:
         raise SchemaError(path, f"line {e.lineno}", f"invalid JSON: {e.msg}") from None
+    except UnicodeDecodeError:
+        raise SchemaError(path, "", "not a UTF-8 JSON text file") from None
     return rig_from_json(obj, path)

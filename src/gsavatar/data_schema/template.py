@@ -78,16 +78,16 @@ def load_template(where: str | Path, num_joints: int) -> Template:
     where = Path(where)
     obj = read_obj(where / "mesh.obj")
     sw = where / "skin_weights.npz"
-    if not sw.exists():
-        raise SchemaError(sw, "", "file not found")
-    try:
-        with np.load(sw) as z:
-            if "indices" not in z or "weights" not in z:
-                raise SchemaError(sw, "indices/weights", f"missing; has {sorted(z.files)}")
-            idx = np.asarray(z["indices"], dtype=np.int32)
-            w = np.asarray(z["weights"], dtype=np.float32)
-    except (OSError, ValueError) as e:
-        raise SchemaError(sw, "", f"cannot read npz: {e}") from None
+    from gsavatar.utils.io import read_npz
+
+    z = read_npz(sw)
+    if "indices" not in z or "weights" not in z:
+        raise SchemaError(sw, "indices/weights", f"missing; has {sorted(z)}")
+    for k, kinds in (("indices", "iu"), ("weights", "iuf")):
+        if z[k].dtype.kind not in kinds:
+            raise SchemaError(sw, k, f"expected {'integers' if kinds == 'iu' else 'real numbers'}, got dtype {z[k].dtype}")
+    idx = np.asarray(z["indices"], dtype=np.int32)
+    w = np.asarray(z["weights"], dtype=np.float32)
     mask = None
     mpath = where / "face_uv_mask.png"
     if mpath.exists():

@@ -121,6 +121,10 @@ def drive(args: DriveArgs) -> dict:
     gt = motion.gt if cfg.cameras == "capture" else None
     if motion.gt is not None:
         d.use_capture_cameras(motion.gt.capture)
+    if gt is not None:  # missing or misfit ground truth fails here, before OUT is touched
+        from gsavatar.data_schema import check_images
+
+        check_images(gt.capture, sorted(set(gt.frames)), [v.name for v in d.views])
     textures = texture_source(motion, scene, cfg.textures) if d.needs_textures else None
     lp, lp_name = _lpips(args.lpips, d.device) if gt is not None else (None, "off")
     acc = SequenceMetrics(lp)

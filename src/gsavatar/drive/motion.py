@@ -224,6 +224,8 @@ def validate_arrays(path: Path, arrays: dict[str, np.ndarray | None], pose_dim: 
             if key != "face":
                 raise SchemaError(path, key, "missing")
             continue
+        if a.dtype.kind not in "biuf":
+            raise SchemaError(path, key, f"expected an array of real numbers, got dtype {a.dtype}")
         if a.ndim != 2 or (width is not None and a.shape[1] != width):
             raise SchemaError(path, key, f"expected shape [T, {width if width is not None else 'E'}], got {list(a.shape)}"
                               + (" (pose width must match the avatar's rig)" if key == "pose" else ""))
@@ -239,11 +241,14 @@ def validate_arrays(path: Path, arrays: dict[str, np.ndarray | None], pose_dim: 
         raise SchemaError(path, "pose", "no frames")
 
 
-def _npz_fps(path: Path, z, fps: float | None) -> float:
+def _npz_fps(path: Path, z: dict[str, np.ndarray], fps: float | None) -> float:
     if fps is not None:
         return float(fps)
-    if "fps" in z.files:
-        return float(np.asarray(z["fps"]).reshape(-1)[0])
+    if "fps" in z:
+        a = np.asarray(z["fps"]).reshape(-1)
+        if a.size != 1 or a.dtype.kind not in "iuf":
+            raise SchemaError(path, "fps", f"expected one number, got {a.size} values of dtype {a.dtype}")
+        return float(a[0])
     for side in (path.with_suffix(".json"), path.parent / "capture.json"):
         if side.exists():
             try:
@@ -326,14 +331,12 @@ def load_driving_motion(source: str | Path, rig: Rig, target_fps: float | None =
                         rig.pose_dim)
         return DrivingMotion(m.pose, m.root_rotation, m.root_translation, None, float(m.fps), None, str(src), float(m.fps))
     if src.suffix.lower() == ".npz":
-        try:
-            z = np.load(src)
-        except (OSError, ValueError) as e:
-            raise SchemaError(src, "", f"cannot read npz: {e}") from None
-        with z:
-            arrays = {k: (np.asarray(z[k]) if k in z.files else None) for k in ("pose", "root_rotation", "root_translation", "face")}
-            validate_arrays(src, arrays, rig.pose_dim)
-            fps_in = _npz_fps(src, z, fps)
+        from gsavatar.utils.io import read_npz
+
+        z = read_npz(src)
+        arrays = {k: z.get(k) for k in ("pose", "root_rotation", "root_translation", "face")}
+        validate_arrays(src, arrays, rig.pose_dim)
+        fps_in = _npz_fps(src, z, fps)
         if not (fps_in > 0 and math.isfinite(fps_in)):
             raise ValueError(f"{src}: fps must be positive, got {fps_in}")
         sl = _select(arrays["pose"].shape[0], start, count, src)

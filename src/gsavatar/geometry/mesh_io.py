@@ -31,7 +31,8 @@ def read_obj(path: str | Path) -> ObjMesh:
     faces: list[list[int]] = []
     fuvs: list[list[int]] = []
     has_uv = True
-    with open(path) as f:
+    # errors=replace: binary junk then fails as a bad line or 'no faces' naming the file, not as a UnicodeDecodeError
+    with open(path, encoding="utf-8", errors="replace") as f:
         for lineno, line in enumerate(f, 1):
             if line.startswith("v "):
                 parts = line.split()

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from gsavatar.data_schema import Capture, load_capture
-from gsavatar.data_schema.dataset import ShardStore, record_stage, stage_complete
+from gsavatar.data_schema.dataset import ShardStore, read_dataset_json, record_stage, stage_complete
 from gsavatar.prep.sharding import RankInfo, barrier, config_hash, init_distributed, parse_shard_arg, run_sharded
 
 
@@ -54,6 +54,7 @@ def stage_config(cfg) -> dict:
 def run_single_file_stage(stage: str, args: StageArgs, config: dict, produce) -> bool:
     """Run ``produce() -> list[Path]`` unless the stage is complete; record it. Returns True if run."""
     root = Path(args.out)
+    read_dataset_json(root)  # a dataset of another format/version is refused before anything is written
     root.mkdir(parents=True, exist_ok=True)
     if not args.force and stage_complete(root, stage, config):
         print(f"[{stage}] complete, skipping (use --force to recompute)")
@@ -73,6 +74,7 @@ def run_single_file_stage(stage: str, args: StageArgs, config: dict, produce) ->
 def run_frame_stage(stage: str, args: StageArgs, config: dict, frames: list[int], compute) -> bool:
     """Run a sharded per-frame stage (resumable, multi-rank). Returns True if the manifest is complete."""
     root = Path(args.out)
+    read_dataset_json(root)  # a dataset of another format/version is refused before anything is written
     root.mkdir(parents=True, exist_ok=True)
     if not args.force and stage_complete(root, stage, config):
         print(f"[{stage}] complete, skipping (use --force to recompute)")

@@ -501,6 +501,22 @@ def project_uv(vertices: np.ndarray, faces: np.ndarray, texel_map: TexelMap, vie
 
 
 # --------------------------------------------------------------------------- loading
+def cameras_seeing(vertices: np.ndarray, cameras: Sequence[Camera]) -> list[str]:
+    """Names of the cameras that have at least one of ``vertices`` in front of them and inside
+    their image (pinhole test, distortion ignored: it is a sanity check of the calibration).
+
+    vertices: [N, 3] world space, metres (e.g. the posed template of a few frames).
+    """
+    out = []
+    for cam in cameras:
+        pc = vertices @ cam.R.T + cam.T  # [N, 3] camera space (cam_from_world)
+        pc = pc[pc[:, 2] > 1e-6]  # in front of the camera
+        uv = pc[:, :2] / pc[:, 2:] @ cam.K[:2, :2].T + cam.K[:2, 2]  # [n, 2] pixels
+        if np.any((uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)):
+            out.append(cam.name)
+    return out
+
+
 def iter_frame_views(capture: Capture, frame: int, cams: Sequence[str] | None = None) -> Iterable[View]:
     """Yield (camera, image [H,W,3] float32, mask [H,W] float32) of one frame, one view at a time."""
     from gsavatar.data_schema.errors import SchemaError

@@ -132,15 +132,36 @@ def _project_shard(capture_dir: str, dataset: str, cfg_json: dict, cams: list[st
     return {"texture": np.stack(tex), "count": np.stack(cnt), "seen": np.stack(seen)}
 
 
+def check_cameras_see_body(cap, cams: list[str], max_frames: int = 8) -> None:
+    """Refuse a calibration under which none of ``cams`` sees the posed body in any of up to
+    ``max_frames`` evenly spaced frames (every camera behind or pointed away from it, e.g. R, T given
+    camera-to-world): the textures would be empty. Single blind cameras are allowed (a warning)."""
+    from gsavatar.data_schema import SchemaError
+    from gsavatar.prep.pose_template import pose_vertices
+    from gsavatar.prep.project_uv import cameras_seeing
+
+    frames = sorted({int(f) for f in np.linspace(0, cap.num_frames - 1, min(max_frames, cap.num_frames)).round()})
+    verts = pose_vertices(cap, frames).reshape(-1, 3)  # [n*V, 3] world, metres
+    seeing = cameras_seeing(verts, [cap.cameras[c] for c in cams])
+    if not seeing:
+        raise SchemaError(cap.root / "calibration.json", "R/T",
+                          f"the body is behind or outside every projected camera ({', '.join(cams)}) in frames {frames}: "
+                          "check that R, T map world to camera (x_cam = R x_world + T, +z forward)")
+    blind = [c for c in cams if c not in seeing]
+    if blind:
+        print(f"[project-uv] warning: cameras {blind} see no part of the body in frames {frames}")
+
+
 def project_uv(args: StageArgs, cfg, cameras: str = "train") -> bool:
     """``cameras``: ``train`` (default: held-out views never leak into textures) or ``all``."""
     from gsavatar.prep.common import stage_config
 
     cap = open_capture(args)
     cfg = resolve_tex_size(cfg, cap)
+    cams = sorted(cap.splits["train"].cameras) if cameras == "train" else sorted(cap.cameras)
+    check_cameras_see_body(cap, cams)
     pose_template(args)
     uv_atlas(args, cfg.tex_size, cfg.gutter_px)
-    cams = sorted(cap.splits["train"].cameras) if cameras == "train" else sorted(cap.cameras)
     config = {**stage_config(cfg), "cameras": cams}
     cfg_json = stage_config(cfg)
     return run_frame_stage("project-uv", args, config, list(range(cap.num_frames)),

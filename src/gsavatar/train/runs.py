@@ -25,7 +25,23 @@ def lpips_or_none(cfg: TrainConfig, device):
     return LPIPS(weights=cfg.lpips_weights).to(device)
 
 
+def check_train_config(cfg: TrainConfig) -> None:
+    """Refuse counts and scales the trainer cannot use (0 = the preset's value where allowed),
+    before anything is loaded or written. Raises ValueError naming the field."""
+    minimum = {"steps": 0, "batch_size": 0, "checkpoint_every": 0, "max_steps_this_run": 0, "num_workers": 0,
+               "log_every": 1, "eval_frames": 1, "correctives_step": -1}
+    for name, lo in minimum.items():
+        v = getattr(cfg, name)
+        if not isinstance(v, int) or v < lo:
+            raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
+    if not (np.isfinite(cfg.image_scale) and cfg.image_scale >= 0):
+        raise ValueError(f"image_scale must be > 0 (or 0 = preset), got {cfg.image_scale!r}")
+    if not 0 <= cfg.sh_increase_fraction <= 1:
+        raise ValueError(f"sh_increase_fraction must be in [0, 1], got {cfg.sh_increase_fraction!r}")
+
+
 def train_and_evaluate(cfg: TrainConfig, evaluate: bool = True) -> dict:
+    check_train_config(cfg)
     tr = Trainer(cfg)
     summary = tr.train()
     if tr.rank == 0:

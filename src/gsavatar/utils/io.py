@@ -12,6 +12,7 @@ import hashlib
 import json
 import os
 import tempfile
+import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -157,6 +158,23 @@ def write_image(path: str | Path, img: np.ndarray) -> None:
     atomic_write_bytes(path, enc.tobytes())
 
 
+NPZ_READ_ERRORS = (OSError, ValueError, EOFError, zipfile.BadZipFile)
+"""What ``np.load`` and reading its arrays raise for a truncated, corrupt or pickled npz."""
+
+
+def read_npz(path: str | Path) -> dict[str, np.ndarray]:
+    """Every array of an npz (no pickles). SchemaError names the file when it is missing, truncated,
+    corrupt (bad zip, bad CRC) or holds object arrays."""
+    path = Path(path)
+    if not path.exists():
+        raise SchemaError(path, "", "file not found")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except NPZ_READ_ERRORS as e:
+        raise SchemaError(path, "", f"cannot read npz (truncated, corrupt or not an npz of plain arrays): {e}") from None
+
+
 def load_versioned_npz(path: str | Path, fmt: str, version: int, required: tuple[str, ...] = (),
                        what: str = "gsavatar") -> tuple[dict, dict[str, np.ndarray]]:
     """Load an npz written with a JSON ``header`` (format + version); no pickles.
@@ -165,13 +183,7 @@ def load_versioned_npz(path: str | Path, fmt: str, version: int, required: tuple
     file, unreadable npz, missing/invalid header, wrong format or version, or missing arrays.
     """
     path = Path(path)
-    if not path.exists():
-        raise SchemaError(path, "", "file not found")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as e:
-        raise SchemaError(path, "", f"cannot read npz: {e}") from None
+    arrays = read_npz(path)
     if "header" not in arrays:
         raise SchemaError(path, "header", f"missing (not a {what} file)")
     try:
