@@ -23,6 +23,7 @@ def _curve(run: Path) -> dict[int, float]:
     out = {}
     for line in (run / "metrics.jsonl").read_text().splitlines():
         r = json.loads(line)
+        assert r["step"] not in out, f"step {r['step']} logged twice"  # resumes trim the log
         out[r["step"]] = r["total"]
     return out
 

@@ -22,7 +22,7 @@ from gsavatar.train.checkpoint import load_checkpoint, save_checkpoint
 from gsavatar.train.config import TrainConfig, resolve, to_json
 from gsavatar.train.data import PreparedScene, ViewDataset, load_scene
 from gsavatar.train.sampler import StepBatchSampler, step_generator
-from gsavatar.utils.io import atomic_write_json
+from gsavatar.utils.io import atomic_write_json, atomic_write_text
 
 
 class NetOutput(NamedTuple):
@@ -85,6 +85,21 @@ def render_views(out: AvatarOutput, viewmats: Tensor, Ks: Tensor, width: int, he
         cols.append(r.colors[0].permute(2, 0, 1))
         alps.append(r.alphas[0].permute(2, 0, 1))
     return torch.stack(cols), torch.stack(alps)
+
+
+def trim_log(path: Path, step: int) -> None:
+    """Drop the lines of a ``metrics.jsonl`` logged after ``step`` (a run resumed from an earlier checkpoint
+    repeats those steps, so the log keeps one line per step). Torn last lines of a killed run go too."""
+    if not path.exists():
+        return
+    keep = []
+    for line in path.read_text().splitlines():
+        try:
+            if json.loads(line)["step"] <= step:
+                keep.append(line)
+        except (ValueError, KeyError):
+            continue
+    atomic_write_text(path, "".join(k + "\n" for k in keep))
 
 
 class Trainer:
@@ -190,6 +205,8 @@ class Trainer:
             self.out.mkdir(parents=True, exist_ok=True)
             atomic_write_json(self.out / "config.json", self.config_json())
         log_path = self.out / "metrics.jsonl"
+        if self.rank == 0:
+            trim_log(log_path, self.step)
         stop_at = cfg.steps if cfg.max_steps_this_run <= 0 else min(cfg.steps, self.step + cfg.max_steps_this_run)
         t0, n0 = time.perf_counter(), self.step
         last: dict[str, float] = {}
