@@ -34,6 +34,15 @@ TRAIN = ["--preset", "tiny", "--lpips", "off", "--image-scale", "0.5", "--log-ev
          "--deterministic", "--steps", "6", "--checkpoint-every", "2"]
 
 
+
+def kill_group(p: subprocess.Popen) -> None:
+    """SIGKILL the process and its children (started with ``start_new_session=True``), then reap it."""
+    try:
+        os.killpg(p.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    p.wait()
+
 def prep_argv(capture: Path, out: Path, *extra: str) -> list[str]:
     return ["all", "--capture", str(capture), "--out", str(out), *PREP, *extra]
 
@@ -100,11 +109,7 @@ def kill_when(p: subprocess.Popen, ds: Path, point: str, delay: float, timeout: 
             break
         time.sleep(0.002)
     time.sleep(delay)
-    try:
-        os.killpg(p.pid, signal.SIGKILL)
-    except ProcessLookupError:
-        pass
-    p.wait()
+    kill_group(p)
     p.stderr.close()
     assert p.returncode == -signal.SIGKILL, f"prep finished (exit {p.returncode}) before the kill at {path.name}"
     orphans = [q.name for q in ds.rglob(".*") if q.is_file()]
@@ -201,11 +206,7 @@ def test_training_killed_at_a_random_step_then_resumed_equals_uninterrupted(seed
             break
         time.sleep(0.01)
     time.sleep(delay)
-    try:
-        os.killpg(p.pid, signal.SIGKILL)
-    except ProcessLookupError:
-        pass
-    p.wait()
+    kill_group(p)
     assert p.returncode == -signal.SIGKILL, f"training finished (exit {p.returncode}) before the kill at step {step}"
     print(f"killed {delay * 1e3:.0f} ms after step {step} was logged; checkpoint: {(run / 'checkpoints/latest.pt').exists()}")
     assert train_main(argv) == 0  # resumes from the last complete checkpoint (or from scratch)

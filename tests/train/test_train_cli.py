@@ -139,3 +139,18 @@ def test_eval_reports_the_latent_gain_and_it_is_zero_when_latents_are_cut(tiny_d
         net.avatar.mlp.weights[0][:, -L:] = 0  # the anchor MLPs no longer see the latent
     res = evaluate_run(tmp_path / "cut", 1, loaded=(net, scene, cfg))
     assert res["latent_gain_db"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_encoder_is_untouched_until_the_correctives_switch_on(tiny_dataset, tmp_path):
+    # Before the correctives the latent has no effect; a KL term alone would pull the posterior to the prior.
+    from gsavatar.train.trainer import build_net, model_config
+    from gsavatar.train.runs import load_run
+
+    run = tmp_path / "r"
+    assert main(["avatar", "--dataset", str(tiny_dataset), *FAST, "--steps", "3", "--correctives-step", "100",
+                 "--out", str(run)]) == 0
+    net, scene, cfg, _ = load_run(run, "cpu")
+    init = build_net(scene, model_config(cfg), cfg.seed)
+    for (k, a), b in zip(net.encoder.state_dict().items(), init.encoder.state_dict().values()):
+        assert torch.equal(a, b), k
+    assert any(not torch.equal(a, b) for a, b in zip(net.avatar.parameters(), init.avatar.parameters()))
