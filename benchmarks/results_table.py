@@ -24,6 +24,8 @@ from pathlib import Path
 
 import torch
 
+from gsavatar.utils.io import atomic_write_json
+
 ROWS = [
     # (label, run dir, drive mode)
     ("Ours (predictor, encoder init)", "run_ours", "predictor_encoder_init"),
@@ -40,8 +42,15 @@ ROWS = [
 
 
 def drive_row(run: Path, mode: str, out: Path, image_scale: float) -> dict:
+    """Drive the run's test frames in ``mode``; reuses ``out/row.json`` when it is newer than the run's checkpoints."""
     from gsavatar.drive.cli import main as drive
 
+    cached = out / "row.json"
+    ckpts = [p for p in (run / "checkpoints" / "latest.pt", run / "predictor" / "latest.pt") if p.exists()]
+    if cached.exists() and all(cached.stat().st_mtime > p.stat().st_mtime for p in ckpts):
+        row = json.loads(cached.read_text())
+        if row.get("image_scale") == image_scale:
+            return row
     cap = json.loads((run / "config.json").read_text())["train"]["dataset"]
     capture = json.loads((Path(cap) / "dataset.json").read_text())["capture"]
     t = time.perf_counter()
@@ -52,8 +61,10 @@ def drive_row(run: Path, mode: str, out: Path, image_scale: float) -> dict:
     info = json.loads((out / "drive.json").read_text())
     m = info["metrics"]
     views = info["frames"] * len(info["cameras"])
-    return {**m, "frames": info["frames"], "fps_drive": views / max(time.perf_counter() - t, 1e-9),
-            "lpips_net": json.loads((out / "metrics.json").read_text()).get("lpips_net")}
+    row = {**m, "frames": info["frames"], "fps_drive": views / max(time.perf_counter() - t, 1e-9),
+           "lpips_net": json.loads((out / "metrics.json").read_text()).get("lpips_net"), "image_scale": image_scale}
+    atomic_write_json(cached, row)
+    return row
 
 
 @torch.no_grad()
@@ -106,15 +117,15 @@ def main() -> None:
     rows = []
     for label, rdir, mode in ROWS:
         run = a.runs / rdir
-        if not (run / "checkpoints" / "latest.pt").exists():
+        if not (run / "eval" / "metrics.json").exists():  # written when training has finished
             continue
-        if mode != "encoder" and rdir == "run_ours" and not (run / "predictor" / "latest.pt").exists():
+        if mode != "encoder" and rdir == "run_ours" and not (run / "predictor" / "eval.json").exists():
             continue
         print(f"[results] {label}", flush=True)
         rows.append((label, rdir, drive_row(run, mode, a.runs / "drive" / f"{rdir}_{mode}", a.image_scale)))
     loc = []
     for rdir in ("run_ours", "run_mmlps", "run_nrfgca", "run_wo_local_pose", "run_wo_local_pca"):
-        if (a.runs / rdir / "checkpoints" / "latest.pt").exists():
+        if (a.runs / rdir / "eval" / "metrics.json").exists():
             for p in a.params:
                 r = locality(a.runs / rdir, p)
                 if r:
