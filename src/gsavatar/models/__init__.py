@@ -3,6 +3,7 @@
 - :class:`ModelConfig`, :func:`model_preset`, :func:`variant_config`, :class:`LearningRates`
 - :class:`GaussianAvatar` -> :class:`AvatarOutput` (posed Gaussians per frame)
 - :class:`AnchorMLPs` (one MLP per anchor, stacked weights)
+- :class:`UVDecoder` (the nRFGCA-dagger baseline's convolutional UV decoder)
 - :class:`AppearanceEncoder` (UV-texture CNN VAE), :func:`sample_at_uv`, :func:`kl_divergence`
 - :func:`write_ply` / :func:`read_ply` / :func:`export_frame_ply` (standard 3DGS PLY)
 """
@@ -25,9 +26,11 @@ from gsavatar.models.encoder import (
 )
 from gsavatar.models.mlp import AnchorMLPs, anchor_mlp_forward
 from gsavatar.models.ply import PlyGaussians, export_frame_ply, ply_property_names, read_ply, write_ply
+from gsavatar.models.uv_decoder import UVDecoder
 
 __all__ = [
     "SH_C0",
+    "UVDecoder",
     "AnchorMLPs",
     "AppearanceEncoder",
     "AvatarOutput",
