@@ -11,11 +11,10 @@ per channel). Two 3x3 convolutions predict ``mu`` and ``log sigma^2`` maps with
 mode and equal ``mu`` in eval mode. ``logvar`` is clamped to ``[-30, 20]``.
 
 The ``log sigma^2`` head starts with zero weights and bias ``logvar_init`` (default -6,
-sigma = 0.05). With PyTorch's default init it would start near 0 (sigma = 1), i.e. noise
-2.3x larger than the initial ``mu`` (std 0.43 on a 512^2 texture), and the decoder would learn to ignore the
-latent before the encoder could shrink it (posterior collapse; measured on the ``small``
-capture: encoder and zero latents changed Gaussian colours by 5e-5). The paper's KL
-weight (1e-6) is far too small to undo that in a short run.
+sigma = 0.05). With PyTorch's default init it would start near 0 (sigma = 1), noise 2.3x
+larger than the initial ``mu`` (std 0.43 on a 512^2 texture), so training would start from
+latents that carry almost nothing. (The trainer also holds the KL back until the
+correctives are on; docs/train.md has the posterior-collapse measurements.)
 
 Each anchor reads its local code by bilinear lookup at its UV (:func:`sample_at_uv`).
 """
