@@ -30,7 +30,6 @@ from gsavatar.models.uv_decoder import UVDecoder
 
 __all__ = [
     "SH_C0",
-    "UVDecoder",
     "AnchorMLPs",
     "AppearanceEncoder",
     "AvatarOutput",
@@ -39,6 +38,7 @@ __all__ = [
     "LearningRates",
     "ModelConfig",
     "PlyGaussians",
+    "UVDecoder",
     "anchor_mlp_forward",
     "export_frame_ply",
     "kl_divergence",

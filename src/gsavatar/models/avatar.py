@@ -168,6 +168,11 @@ class GaussianAvatar(nn.Module):
         self.ctrl_basis = z(C, Bc, 3)
 
     # --- helpers -------------------------------------------------------------------------
+    @property
+    def pose_network(self) -> nn.Module:
+        """The network of the pose-dependent part: the anchor MLPs, or the UV decoder (``conv_uv``)."""
+        return self.mlp if self.mlp is not None else self.uv_decoder
+
     def rig_tensors(self, device: torch.device, dtype: torch.dtype) -> RigTensors:
         key = (device, dtype)
         if key not in self._rig_cache:
@@ -303,8 +308,8 @@ class GaussianAvatar(nn.Module):
         degree 0) are left out. Use with ``torch.optim.AdamW(groups, eps=1e-15, betas=(0.9, 0.999))``.
         """
         lrs = lrs or LearningRates()
-        net = self.mlp if self.mlp is not None else self.uv_decoder
-        groups = [{"name": "mlp", "params": list(net.parameters()), "lr": lrs.mlp, "weight_decay": lrs.mlp_weight_decay}]
+        groups = [{"name": "mlp", "params": list(self.pose_network.parameters()), "lr": lrs.mlp,
+                   "weight_decay": lrs.mlp_weight_decay}]
         for attr, lr_name in self._GROUPS:
             p = getattr(self, attr)
             if p.numel():
@@ -317,8 +322,7 @@ class GaussianAvatar(nn.Module):
 
     def parameter_counts(self) -> dict[str, int]:
         """Number of scalars per parameter group (and ``total``)."""
-        net = self.mlp if self.mlp is not None else self.uv_decoder
-        out = {"mlp": sum(p.numel() for p in net.parameters())}
+        out = {"mlp": sum(p.numel() for p in self.pose_network.parameters())}
         out.update({a: getattr(self, a).numel() for a, _ in self._GROUPS})
         out["total"] = sum(out.values())
         return out
