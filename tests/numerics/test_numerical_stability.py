@@ -369,14 +369,14 @@ def _fp16_texture(fill, S=64) -> np.ndarray:
 @pytest.mark.parametrize("fill", list(TEXTURES.values()), ids=list(TEXTURES))
 def test_fp16_textures_through_loader_encoder_and_losses(tmp_path, fill):
     # Store two frames as an fp16 project-uv shard and read them back the way the
-    # training data set does (ViewDataset.texture: fp16 -> float32, exact).
+    # training data set does (ViewDataset._load_texture: fp16 -> float32, exact; its fp16 cache is exact too).
     tex16 = np.stack([_fp16_texture(fill), _fp16_texture(None)])
     store = ShardStore(stage_dir(tmp_path, "project-uv"), "project-uv")
     spec = ShardSpec(0, [0, 1])
     store.write(spec, {"texture": tex16}, "test")
     store.merge_manifest([spec])
-    reader = SimpleNamespace(_tex=None, scene=SimpleNamespace(dataset=tmp_path))
-    tex = [ViewDataset.texture(reader, f) for f in (0, 1)]
+    reader = SimpleNamespace(_tex=None, scene=SimpleNamespace(dataset=tmp_path), texture_source="projected")
+    tex = [ViewDataset._load_texture(reader, f) for f in (0, 1)]
     assert all(t.dtype == np.float32 for t in tex)
     np.testing.assert_array_equal(tex[0], tex16[0].astype(np.float32))  # max and subnormals survive
 

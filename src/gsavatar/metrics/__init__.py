@@ -6,12 +6,14 @@
 """
 
 from .image import gaussian_kernel1d, mse, psnr, psnr_from_mse, ssim, ssim_map
+from .temporal import frame_dependence
 from .lpips import LPIPS, LPIPSWeightsError, convert_official_lpips, official_lpips_state_dict
 
 __all__ = [
     "LPIPS",
     "LPIPSWeightsError",
     "convert_official_lpips",
+    "frame_dependence",
     "gaussian_kernel1d",
     "mse",
     "official_lpips_state_dict",

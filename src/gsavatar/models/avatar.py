@@ -42,7 +42,7 @@ from torch import Tensor, nn
 from gsavatar.data_schema.rig import BODY_GROUPS, Rig
 from gsavatar.geometry.lbs import RigTensors, skinning_transforms
 from gsavatar.models import gaussians as gm
-from gsavatar.models.config import LearningRates, ModelConfig
+from gsavatar.models.config import INPUT_STD_FLOOR, LearningRates, ModelConfig
 from gsavatar.models.encoder import sample_at_uv
 from gsavatar.models.mlp import AnchorMLPs
 from gsavatar.models.uv_decoder import UVDecoder
@@ -105,6 +105,7 @@ class GaussianAvatar(nn.Module):
                 pca.check_rig(rig)
         self.num_anchors, self.num_control, self.num_gaussians, self.pose_dim = A, C, G, P
         self._rig_cache: dict = {}
+        self._sparse_cache: dict = {}
 
         # --- constant buffers ---------------------------------------------------------
         f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
@@ -132,6 +133,12 @@ class GaussianAvatar(nn.Module):
             for name, arr in (("mean", None if pca is None else pca.mean), ("basis", None if pca is None else pca.basis),
                               ("limit", None if pca is None else pca.clamp_sigma * pca.sigma)):
                 self.register_buffer(f"pca_{kind}_{name}", None if arr is None else f32(arr))
+
+        if cfg.input_norm:  # filled by set_input_stats (else identity); saved with the checkpoint
+            self.register_buffer("pose_in_mean", torch.zeros(P))  # [P] conditioning pose, train frames
+            self.register_buffer("pose_in_std", torch.ones(P))  # [P]
+            self.register_buffer("face_in_mean", torch.zeros(cfg.face_dim))  # [E]
+            self.register_buffer("face_in_std", torch.ones(cfg.face_dim))  # [E]
 
         # --- parameters ------------------------------------------------------------------
         gen = torch.Generator().manual_seed(seed)
@@ -173,6 +180,24 @@ class GaussianAvatar(nn.Module):
         """The network of the pose-dependent part: the anchor MLPs, or the UV decoder (``conv_uv``)."""
         return self.mlp if self.mlp is not None else self.uv_decoder
 
+    def sparse_weights(self, name: str, device: torch.device, dtype: torch.dtype) -> Tensor:
+        """Interpolation weights as a sparse matrix, built once per device/dtype from the index/weight buffers:
+        ``gauss_anchor`` [G, A], ``ctrl_anchor`` [C, A], ``gauss_ctrl`` [G, C], ``skin`` [G, J]."""
+        key = (name, device, dtype)
+        if key not in self._sparse_cache:
+            idx, w, m = {
+                "gauss_anchor": (self.gauss_anchor_idx, self.gauss_anchor_w, self.num_anchors),
+                "ctrl_anchor": (self.ctrl_anchor_idx, self.ctrl_anchor_w, self.num_anchors),
+                "gauss_ctrl": (self.gauss_ctrl_idx, self.gauss_ctrl_w, self.num_control),
+                "skin": (self.skin_indices, self.skin_weights, self.rig.num_joints),
+            }[name]
+            self._sparse_cache[key] = gm.interpolation_matrix(idx.to(device), w.to(device, dtype), m)
+        return self._sparse_cache[key]
+
+    def _apply(self, fn, recurse=True):  # .to()/.double() etc.: rebuild the sparse matrices lazily
+        self._sparse_cache = {}
+        return super()._apply(fn, recurse)
+
     def rig_tensors(self, device: torch.device, dtype: torch.dtype) -> RigTensors:
         key = (device, dtype)
         if key not in self._rig_cache:
@@ -187,13 +212,51 @@ class GaussianAvatar(nn.Module):
         m, b, lim = (getattr(self, f"pca_{mode}_{n}") for n in ("mean", "basis", "limit"))
         return gm.pca_project(pose, m.to(pose.dtype), b.to(pose.dtype), lim.to(pose.dtype))
 
+    @torch.no_grad()
+    def set_input_stats(self, pose: Tensor, face: Tensor | None = None) -> None:
+        """``input_norm``: per-parameter mean/std of the MLP inputs over the training frames.
+
+        pose [F, P] raw radians (the conditioning PCA of training mode is applied here), face [F, E] or None.
+        """
+        if not self.config.input_norm:
+            raise ValueError("set_input_stats needs config.input_norm=True")
+        _check("pose", pose, (None, self.pose_dim))
+        was = self.training
+        self.train(True)
+        x = self.conditioning_pose(pose.to(self.pose_in_mean))
+        self.train(was)
+        self.pose_in_mean.copy_(x.mean(0))
+        self.pose_in_std.copy_(x.std(0, correction=0).clamp_min(INPUT_STD_FLOOR))
+        if self.config.face_dim and face is not None:
+            _check("face", face, (pose.shape[0], self.config.face_dim))
+            f = face.to(self.face_in_mean)
+            self.face_in_mean.copy_(f.mean(0))
+            self.face_in_std.copy_(f.std(0, correction=0).clamp_min(INPUT_STD_FLOOR))
+
     def anchor_inputs(self, pose: Tensor, face: Tensor | None = None, latents: Tensor | None = None) -> Tensor:
         """Per-anchor MLP input ``[θ̂_i, φ̂_i, l_i]``. pose [B, P], face [B, E], latents [B, A, L] -> [B, A, P+E+L]"""
         dt = pose.dtype
+        x = self.conditioning_pose(pose)
+        if self.config.input_norm:
+            x = (x - self.pose_in_mean.to(dt)) / self.pose_in_std.to(dt)
+            if face is not None and self.config.face_dim:
+                face = (face.to(dt) - self.face_in_mean.to(dt)) / self.face_in_std.to(dt)
         return gm.anchor_inputs(
-            self.conditioning_pose(pose), self.pose_mask.to(dt), face, self.face_mask.to(dt), self.config.face_dim,
+            x, self.pose_mask.to(dt), face, self.face_mask.to(dt), self.config.face_dim,
             latents if self.latent_in else None, self.latent_in,
         )
+
+    def coefficients(self, pose: Tensor, face: Tensor | None = None, latents: Tensor | None = None) -> Tensor:
+        """Anchor-MLP coefficients ``w`` (``center_correctives``: minus those of the reference input).
+
+        pose [B, P], face [B, E] or None, latents [B, A, L] or None -> [B, A, n_basis + n_ctrl_basis]
+        """
+        x = self.anchor_inputs(pose, face, latents)  # [B, A, D]
+        if not self.config.center_correctives:
+            return self.mlp(x)
+        # Reference = the standardised mean input (zeros); one extra row through the same batched MLPs.
+        y = self.mlp(torch.cat([x, x.new_zeros(1, *x.shape[1:])], dim=0))
+        return y[:-1] - y[-1:]
 
     def uv_deltas(self, pose: Tensor, face: Tensor | None) -> dict[str, Tensor]:
         """``conv_uv`` only: per-Gaussian pre-activation deltas from the UV decoder.
@@ -256,11 +319,12 @@ class GaussianAvatar(nn.Module):
         if correctives and self.uv_decoder is not None:
             d = self.uv_deltas(pose, face)
         elif correctives:
-            coeffs = self.mlp(self.anchor_inputs(pose, face, latents))  # [B, A, Bg + Bc]
-            w_g = gm.interpolate(coeffs[..., :Bg], self.gauss_anchor_idx, self.gauss_anchor_w)  # [B, G, Bg]
-            w_c = gm.interpolate(coeffs[..., Bg:], self.ctrl_anchor_idx, self.ctrl_anchor_w)  # [B, C, Bc]
+            coeffs = self.coefficients(pose, face, latents)  # [B, A, Bg + Bc]
+            dev, dt = coeffs.device, coeffs.dtype
+            w_g = gm.sparse_interpolate(coeffs[..., :Bg], self.sparse_weights("gauss_anchor", dev, dt))  # [B, G, Bg]
+            w_c = gm.sparse_interpolate(coeffs[..., Bg:], self.sparse_weights("ctrl_anchor", dev, dt))  # [B, C, Bc]
         ctrl_disp = gm.apply_basis(self.ctrl_bias, self.ctrl_basis, w_c, B)  # [B, C, 3]
-        offset = gm.interpolate(ctrl_disp, self.gauss_ctrl_idx, self.gauss_ctrl_w)  # [B, G, 3]
+        offset = gm.sparse_interpolate(ctrl_disp, self.sparse_weights("gauss_ctrl", ctrl_disp.device, ctrl_disp.dtype))  # [B, G, 3]
         if w_g is not None:
             offset = offset + torch.einsum("bgk,gkd->bgd", w_g, self.gauss_pos_basis)
         if d:
@@ -285,7 +349,8 @@ class GaussianAvatar(nn.Module):
             sh = sh0[:, :, None]
 
         T = skinning_transforms(self.rig_tensors(pose.device, pose.dtype), pose, root_rotation, root_translation)  # [B, J, 4, 4]
-        affine = gm.blend_affine(T, self.skin_indices, self.skin_weights)  # [B, G, 3, 4]
+        affine = gm.blend_affine(T, self.skin_indices, self.skin_weights,
+                                 self.sparse_weights("skin", T.device, T.dtype))  # [B, G, 3, 4]
         means, quats = gm.pose_gaussians(canonical, quats_c, affine)
         return AvatarOutput(means, quats, scales, opacities, sh, ctrl_disp, canonical)
 

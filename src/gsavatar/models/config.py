@@ -33,6 +33,10 @@ PcaMode = Literal["local", "global", "global_test_only", "none"]
 PresetName = Literal["tiny", "small", "paper"]
 VariantName = Literal["ours", "wo_local_pose", "wo_local_pca", "wo_appearance", "mmlps_dagger", "nrfgca_dagger"]
 
+INPUT_STD_FLOOR = 0.05
+"""Floor of the per-parameter std used by ``input_norm`` (radians / face units): parameters that hardly
+move in the training frames are not blown up at test time."""
+
 SH_C0 = 0.28209479177387814
 """Band-0 real SH constant: ``colour = SH0 * SH_C0 + 0.5``."""
 
@@ -82,6 +86,21 @@ class ModelConfig:
     start at exactly 0 anyway because every basis ``ΔΛ`` is zero-initialised; a zero or
     tiny last layer as well would stall learning (the gradient of each factor of
     ``<w, ΔΛ>`` is proportional to the other)."""
+
+    input_norm: bool = False
+    """Standardise the anchor MLPs' pose and face inputs with the training frames' per-parameter mean and
+    std (after the PCA; std floored at ``INPUT_STD_FLOOR``), before the localization mask. Raw radians
+    vary by a few hundredths over a capture, so the MLP outputs barely change from frame to frame at
+    init and the correctives learn a static offset. CPU presets: on; ``paper``: off (docs/train.md)."""
+    center_correctives: bool = False
+    """Coefficients ``w = MLP(x) - MLP(x_ref)``, ``x_ref`` the standardised mean input (zeros): the
+    correctives vanish at the mean pose and appearance, so the biases hold the mean avatar and the bases
+    only the frame-dependent part (without it they first learn a static offset, redundant with the
+    biases). Needs ``input_norm`` (and ``latent_norm`` for the latent block) to mean "the mean frame"."""
+    latent_norm: bool = False
+    """Standardise each anchor's latent channel over frames with running statistics
+    (:class:`~gsavatar.models.encoder.LatentNorm`), so the frame-to-frame change the encoder sees
+    reaches the MLPs at unit scale whatever the encoder's output scale."""
 
     uv_decoder_size: int = 128
     """``conv_uv`` only: side of the decoded UV property map (8 x a power of two)."""
@@ -156,12 +175,21 @@ class LearningRates:
     """AdamW weight decay of the appearance encoder."""
 
 
+CPU_RECIPE = dict(input_norm=True, center_correctives=True, latent_norm=True)
+"""What the CPU presets add to the paper's model so the frame-dependent half learns in ~1-2k steps
+(docs/train.md, "A recipe for the CPU budget")."""
+
+
 def model_preset(name: PresetName, **overrides) -> ModelConfig:
-    """Named sizes: ``tiny`` (hidden (64, 64), tests / CPU), ``small`` ((128, 128, 128)), ``paper``."""
+    """Named sizes: ``tiny`` (hidden (64, 64), tests / CPU), ``small`` ((128, 128, 128)), ``paper``.
+
+    ``tiny`` and ``small`` also turn on :data:`CPU_RECIPE`; ``paper`` keeps the paper's model.
+    """
     hidden = {"tiny": (64, 64), "small": (128, 128, 128), "paper": (512, 256, 256, 256)}
     if name not in hidden:
         raise ValueError(f"unknown preset {name!r}; expected one of {sorted(hidden)}")
-    return ModelConfig(hidden=hidden[name], **overrides)
+    recipe = {} if name == "paper" else dict(CPU_RECIPE)
+    return ModelConfig(hidden=hidden[name], **{**recipe, **overrides})
 
 
 def variant_config(base: ModelConfig, name: VariantName) -> ModelConfig:

@@ -175,3 +175,50 @@ class AppearanceEncoder(nn.Module):
     def param_groups(self, lr: float = 5e-4, weight_decay: float = 1e-3) -> list[dict]:
         """One AdamW group (supp. D.2: lr 5e-4, weight decay 1e-3)."""
         return [{"name": "encoder", "params": list(self.parameters()), "lr": lr, "weight_decay": weight_decay}]
+
+
+def standardize(x: Tensor, mean: Tensor, var: Tensor, floor: float) -> Tensor:
+    """``(x - mean) / max(sqrt(var), floor)``. x [B, A, L], mean/var [A, L] -> [B, A, L]"""
+    return (x - mean.to(x.dtype)) / var.to(x.dtype).sqrt().clamp_min(floor)
+
+
+class LatentNorm(nn.Module):
+    """Running per-anchor, per-channel standardisation of appearance latents over frames.
+
+    Training mode updates the running mean and variance from each batch (detached; the first
+    ``1 / momentum`` updates are a cumulative average, then an EMA with ``momentum``) and uses them;
+    eval mode only uses them. The encoder's frame-to-frame change is small next to its spatial
+    variation (std over frames 0.005 vs mean magnitude 0.1 on the ``small`` capture), so without
+    this the MLPs see almost constant latents. Latents everywhere downstream (predictor targets,
+    the mean latent, driving) are in this standardised space.
+    """
+
+    def __init__(self, num_anchors: int, latent_dim: int, momentum: float = 0.01, std_floor: float = 1e-4) -> None:
+        super().__init__()
+        if not 0 < momentum <= 1:
+            raise ValueError(f"momentum must be in (0, 1], got {momentum}")
+        self.momentum, self.std_floor = float(momentum), float(std_floor)
+        self.register_buffer("mean", torch.zeros(num_anchors, latent_dim))  # [A, L]
+        self.register_buffer("var", torch.ones(num_anchors, latent_dim))  # [A, L]
+        self.register_buffer("count", torch.zeros((), dtype=torch.long))  # updates so far
+
+    @torch.no_grad()
+    def update(self, x: Tensor) -> None:
+        """Fold a batch of latents into the running statistics. x: Tensor  # [B, A, L]"""
+        x = x.detach().to(self.mean.dtype)
+        m = max(1.0 / float(self.count + 1), self.momentum)
+        bm = x.mean(0)
+        if int(self.count) == 0:
+            self.mean.copy_(bm)
+            self.var.copy_(((x - bm) ** 2).mean(0))
+        else:
+            d = x - self.mean
+            self.mean.add_(m * (bm - self.mean))
+            self.var.mul_(1 - m).add_(m * (d * d).mean(0))
+        self.count += 1
+
+    def forward(self, x: Tensor) -> Tensor:
+        """x: Tensor  # [B, A, L] raw latents -> standardised [B, A, L] (updates the stats in training mode)."""
+        if self.training:
+            self.update(x)
+        return standardize(x, self.mean, self.var, self.std_floor)

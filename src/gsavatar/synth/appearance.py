@@ -53,6 +53,11 @@ class AppearanceConfig:
     """Time scale of the face embedding, seconds."""
     face_strength: float = 0.15
     """Largest colour change the face embedding causes in the face region."""
+    trouser_tint_range: float = 0.0
+    """Largest hue rotation of the trousers (a slow, pose-independent re-dye drift), radians about the grey
+    axis; 0 = off (the default; captures built before it existed stay byte-identical)."""
+    trouser_tint_period_s: float = 3.0
+    """Time scale of the trouser tint drift, seconds."""
     coupling: bool = True
     """Tie the trouser fold state to the coupling pose signal in train frames (spurious correlation)."""
     coupling_hysteresis: float = 0.05
@@ -247,6 +252,12 @@ class AppearanceModel:
         self._build_base(r_col)
         self._build_folds(r_fold)
         self._build_dynamics(r_chain, r_drift, r_face, r_couple, train_frames, coupling_signal)
+        # Its own stream (spawned past the first six), so turning it on changes nothing else.
+        r_tint = np.random.default_rng(ss.spawn(1)[0])
+        self.trouser_tint = (_smooth_process(r_tint, self.num_frames, self.fps, self.config.trouser_tint_period_s, 1)[:, 0]
+                             if self.config.trouser_tint_range > 0 else np.zeros(self.num_frames))
+        self._trou_idx = np.flatnonzero(self.regions["trousers"].ravel() > 1e-3)
+        self._trou_w = self.regions["trousers"].ravel()[self._trou_idx][:, None].astype(np.float32)
 
     # ------------------------------------------------------------------ static maps
     def _build_regions(self, template: Template, rig: Rig | None) -> None:
@@ -423,7 +434,7 @@ class AppearanceModel:
     def state(self, frame: int) -> dict:
         """The appearance state of ``frame`` (plain ints/floats/lists, JSON-ready)."""
         f = self._check(frame)
-        return {
+        out = {
             "frame": f,
             "shirt_fold": int(self.shirt_fold[f]),
             "trouser_fold": int(self.trouser_fold[f]),
@@ -433,6 +444,9 @@ class AppearanceModel:
             "face": [float(x) for x in self.face_embedding[f]],
             "coupled": bool(self.coupled[f]),
         }
+        if self.config.trouser_tint_range > 0:  # only then: older captures keep their exact states
+            out["trouser_tint"] = float(self.trouser_tint[f])
+        return out
 
     def texture(self, frame: int) -> np.ndarray:
         """Unshaded UV albedo of ``frame``, OBJ convention (top row = v=1).  # [S, S, 3] float32 in [0, 1]"""
@@ -447,6 +461,10 @@ class AppearanceModel:
             M = hue_rotation(cfg.hair_hue_range * float(self.hair_drift[f]))
             h = flat[self._hair_idx]
             flat[self._hair_idx] = h + self._hair_w * (h @ M.T - h)
+        if self.config.trouser_tint_range > 0 and len(self._trou_idx):
+            M = hue_rotation(cfg.trouser_tint_range * float(self.trouser_tint[f]))
+            t = flat[self._trou_idx]
+            flat[self._trou_idx] = t + self._trou_w * (t @ M.T - t)
         if len(self._patch_idx):
             c = self._patch_center + np.array([0.0, cfg.back_patch_shift * float(self.back_shift[f]), 0.0], np.float32)
             d = np.linalg.norm(self._patch_pos - c, axis=1)

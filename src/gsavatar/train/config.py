@@ -31,6 +31,20 @@ class TrainConfig:
     """SH degree goes 0 -> max after this fraction of the steps (paper: 60k of 100k)."""
     correctives_step: int = -1
     """Step from which the MLP correctives are applied (-1 = preset; paper 500)."""
+    basis_lr_scale: float = 0.0
+    """Multiplier of the corrective bases' learning rates (0 = preset: 10 on CPU presets, 1 = the paper's).
+    The bases start at zero and Adam moves them by ~lr per step: at the paper's 1e-4 an SH0 basis needs
+    ~2k steps to express a 0.1 colour change, 20x the CPU budget's corrective steps."""
+    vae_noise_step: int = -2
+    """Step from which latents are sampled with the VAE noise and the KL applies (-2 = preset; -1 = never:
+    deterministic latents ``mu``). Paper preset: with the correctives; CPU presets: never (docs/train.md)."""
+    texture_source: Literal["projected", "gt"] = "projected"
+    """Encoder input: the prepared projected texture, or (synthetic captures) the ground-truth albedo in
+    ``capture/gt/textures``: the oracle run, which bounds what the latent path can do."""
+    cache_views: bool = True
+    """Keep decoded training views and textures in memory (float16) when they fit in ``cache_max_gb``."""
+    cache_max_gb: float = 4.0
+    """Memory budget of the view cache; views past it are decoded every time."""
     losses: LossWeights = field(default_factory=LossWeights)
     """Loss weights (defaults: the paper's)."""
     lpips: Literal["auto", "on", "off"] = "auto"
@@ -69,11 +83,15 @@ class Schedule:
     image_scale: float
     correctives_step: int
     checkpoint_every: int
+    basis_lr_scale: float = 1.0
+    vae_noise_step: int | None = None  # None: the correctives step; -1: never
 
 
 PRESET_SCHEDULES: dict[str, Schedule] = {
-    "tiny": Schedule(steps=150, batch_size=2, image_scale=1.0, correctives_step=30, checkpoint_every=50),
-    "small": Schedule(steps=1200, batch_size=2, image_scale=1.0, correctives_step=200, checkpoint_every=200),
+    "tiny": Schedule(steps=150, batch_size=2, image_scale=1.0, correctives_step=30, checkpoint_every=50,
+                     basis_lr_scale=10.0, vae_noise_step=-1),
+    "small": Schedule(steps=1200, batch_size=2, image_scale=1.0, correctives_step=200, checkpoint_every=200,
+                      basis_lr_scale=10.0, vae_noise_step=-1),
     "paper": Schedule(steps=100_000, batch_size=64, image_scale=1.0, correctives_step=500, checkpoint_every=2000),
 }
 """Schedules per preset; the paper trains 100k steps at batch 64 on 8 GPUs."""
@@ -89,6 +107,10 @@ def resolve(cfg: TrainConfig) -> TrainConfig:
         image_scale=cfg.image_scale or s.image_scale,
         correctives_step=s.correctives_step if cfg.correctives_step < 0 else cfg.correctives_step,
         checkpoint_every=cfg.checkpoint_every or s.checkpoint_every,
+        basis_lr_scale=cfg.basis_lr_scale or s.basis_lr_scale,
+        vae_noise_step=cfg.vae_noise_step if cfg.vae_noise_step != -2 else
+        (s.correctives_step if cfg.correctives_step < 0 else cfg.correctives_step) if s.vae_noise_step is None
+        else s.vae_noise_step,
     )
 
 

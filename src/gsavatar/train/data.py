@@ -110,7 +110,8 @@ class ViewDataset(Dataset):
     """(frame, camera) samples of one split. Items are dicts of tensors (see :meth:`__getitem__`)."""
 
     def __init__(self, scene: PreparedScene, split: str = "train", cameras: list[str] | None = None,
-                 frames: list[int] | None = None, image_scale: float = 1.0, with_texture: bool = True) -> None:
+                 frames: list[int] | None = None, image_scale: float = 1.0, with_texture: bool = True,
+                 texture_source: str = "projected", cache_bytes: int = 0) -> None:
         cap = scene.capture
         if split not in cap.splits:
             raise ValueError(f"split must be one of {sorted(cap.splits)}, got {split!r}")
@@ -122,16 +123,63 @@ class ViewDataset(Dataset):
         self.items = [(f, c) for f in self.frames for c in self.cameras]
         self.geo = {c: scaled_camera(cap.cameras[c], image_scale) for c in self.cameras}
         self.with_texture = with_texture
+        if texture_source not in ("projected", "gt"):
+            raise ValueError(f"texture_source must be 'projected' or 'gt', got {texture_source!r}")
+        self.texture_source = texture_source
         self._tex: ShardReader | None = None
+        self._face_region: np.ndarray | None = None
+        # Decoded views/textures kept as float16 up to cache_bytes (a 256^2 view is 0.5 MB, a 512^2 texture 1.5
+        # MB): decoding PNGs was ~13% of a CPU step. Each DataLoader worker holds its own cache.
+        self.cache_bytes = int(cache_bytes)
+        self._cache: dict[tuple, np.ndarray] = {}
+        self._cached = 0
+
+    def _cache_get(self, key: tuple, load) -> np.ndarray:
+        hit = self._cache.get(key)
+        if hit is not None:
+            return hit.astype(np.float32)
+        arr = load()
+        if self._cached + arr.size * 2 <= self.cache_bytes:
+            self._cache[key] = arr.astype(np.float16)
+            self._cached += arr.size * 2
+            return self._cache[key].astype(np.float32)  # the same values as a later hit
+        return arr
 
     def __len__(self) -> int:
         return len(self.items)
 
     def texture(self, frame: int) -> np.ndarray:
-        """Projected, face-masked UV texture.  # [S, S, 3] float32"""
+        """Encoder input: the projected (or ``gt``: ground-truth albedo) face-masked UV texture.  # [S, S, 3] float32"""
+        return self._cache_get(("tex", frame), lambda: self._load_texture(frame))
+
+    def _load_texture(self, frame: int) -> np.ndarray:
+        if self.texture_source == "gt":
+            return self.gt_texture(frame)
         if self._tex is None:  # opened lazily: one reader (and shard cache) per DataLoader worker
             self._tex = ShardReader(stage_dir(self.scene.dataset, "project-uv"))
         return self._tex.get(frame)["texture"].astype(np.float32)
+
+    def gt_texture(self, frame: int) -> np.ndarray:
+        """Ground-truth albedo of a synthetic capture (``gt/textures``), at the prepared texture size, with the
+        face blanked as in the projected textures.  # [S, S, 3] float32"""
+        from gsavatar.prep.project_uv import resize_face_mask
+
+        path = self.scene.capture.root / "gt" / "textures" / f"{frame:08d}.png"
+        if not path.exists():
+            from gsavatar.data_schema import SchemaError
+
+            raise SchemaError(path, "texture_source", "texture_source='gt' needs a synthetic capture's ground-truth "
+                              "textures (gt/textures/*.png)")
+        tex = read_image(path)
+        S = self.scene.tex_size
+        if tex.shape[:2] != (S, S):
+            tex = cv2.resize(tex, (S, S), interpolation=cv2.INTER_AREA)
+        fm = self.scene.capture.template.face_uv_mask
+        if fm is not None:
+            if self._face_region is None:
+                self._face_region = resize_face_mask(fm, S)
+            tex = np.where(self._face_region[..., None], 0.0, tex).astype(np.float32)
+        return tex
 
     def frame_inputs(self, frame: int) -> dict[str, torch.Tensor]:
         m = self.scene.capture.motion
@@ -150,7 +198,10 @@ class ViewDataset(Dataset):
         frame, cam = self.items[i]
         c = self.scene.capture
         geo = self.geo[cam]
-        img, msk = load_view(c.cameras[cam], c.image_path(cam, frame), c.mask_path(cam, frame), geo)
+        both = self._cache_get(("view", frame, cam), lambda: np.concatenate(
+            [a.reshape(geo.height, geo.width, -1) for a in
+             load_view(c.cameras[cam], c.image_path(cam, frame), c.mask_path(cam, frame), geo)], axis=2))
+        img, msk = both[..., :3], both[..., 3]
         return {
             **self.frame_inputs(frame),
             "image": torch.from_numpy(img).permute(2, 0, 1).contiguous(),  # [3, h, w] in [0, 1]

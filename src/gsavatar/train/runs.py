@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gsavatar.models.encoder import sample_at_uv
 from gsavatar.train.checkpoint import load_checkpoint
 from gsavatar.train.config import TrainConfig, resolve
 from gsavatar.train.data import ViewDataset, load_scene
@@ -36,6 +37,12 @@ def check_train_config(cfg: TrainConfig) -> None:
             raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
     if not (np.isfinite(cfg.image_scale) and cfg.image_scale >= 0):
         raise ValueError(f"image_scale must be > 0 (or 0 = preset), got {cfg.image_scale!r}")
+    if not (np.isfinite(cfg.basis_lr_scale) and cfg.basis_lr_scale >= 0):
+        raise ValueError(f"basis_lr_scale must be > 0 (or 0 = preset), got {cfg.basis_lr_scale!r}")
+    if not isinstance(cfg.vae_noise_step, int) or cfg.vae_noise_step < -2:
+        raise ValueError(f"vae_noise_step must be an integer >= -2 (-2 = preset, -1 = never), got {cfg.vae_noise_step!r}")
+    if not (np.isfinite(cfg.cache_max_gb) and cfg.cache_max_gb >= 0):
+        raise ValueError(f"cache_max_gb must be >= 0, got {cfg.cache_max_gb!r}")
     if not 0 <= cfg.sh_increase_fraction <= 1:
         raise ValueError(f"sh_increase_fraction must be in [0, 1], got {cfg.sh_increase_fraction!r}")
 
@@ -93,17 +100,20 @@ def evaluate_run(run: Path, eval_frames: int = 8, loaded: tuple | None = None) -
         sets["test_frames_heldout_cams"] = (select_frames(splits["test"].frames, eval_frames), test_cams)
     for name, (frames, cams) in sets.items():
         data = ViewDataset(scene, "train", cameras=cams, frames=frames, image_scale=cfg.image_scale,
-                           with_texture=net.encoder is not None)
+                           with_texture=net.encoder is not None, texture_source=cfg.texture_source)
         results[name] = evaluate_views(net, data, dev, sh, cfg.backend, lpips=lp, save_dir=run / "eval" / name)
     if net.encoder is not None and "test" in splits:
         # How much the appearance latent buys: the same held-out views with every frame's latents replaced by
         # the training frames' mean latent. ~0 dB means the avatar ignores its latents.
-        mean_lat = mean_train_latent(net, scene, dev)
+        mean_lat = mean_train_latent(net, scene, dev, cfg.texture_source)
         frames, cams = sets["test_frames_heldout_cams"]
         data = ViewDataset(scene, "train", cameras=cams, frames=frames, image_scale=cfg.image_scale, with_texture=False)
         r = evaluate_views(net, data, dev, sh, cfg.backend, latents_fn=lambda f: mean_lat)
         results["test_frames_heldout_cams_mean_latent"] = r
         results["latent_gain_db"] = results["test_frames_heldout_cams"]["psnr_fg"] - r["psnr_fg"]
+    fd = run_frame_dependence(net, scene, cfg.texture_source)
+    if fd is not None:
+        results["frame_dependence"] = fd
     results["lpips_net"] = getattr(lp, "lpips_name", None) if lp is not None else "off"
     results["variant"] = cfg.variant
     atomic_write_json(run / "eval" / "metrics.json", results)
@@ -111,9 +121,9 @@ def evaluate_run(run: Path, eval_frames: int = 8, loaded: tuple | None = None) -
 
 
 @torch.no_grad()
-def mean_train_latent(net: AvatarNet, scene, device: torch.device) -> torch.Tensor:
+def mean_train_latent(net: AvatarNet, scene, device: torch.device, texture_source: str = "projected") -> torch.Tensor:
     """Mean of the encoder's per-anchor latents (mu) over the training frames.  # [A, L]"""
-    data = ViewDataset(scene, "train", cameras=scene.capture.splits["train"].cameras[:1])
+    data = ViewDataset(scene, "train", cameras=scene.capture.splits["train"].cameras[:1], texture_source=texture_source)
     net.eval()
     total = None
     for f in data.frames:
@@ -121,6 +131,36 @@ def mean_train_latent(net: AvatarNet, scene, device: torch.device) -> torch.Tens
         lat = net.latents(tex, None)[0][0]
         total = lat if total is None else total + lat
     return total / len(data.frames)
+
+
+@torch.no_grad()
+def run_frame_dependence(net: AvatarNet, scene, texture_source: str = "projected", num_frames: int = 24) -> dict | None:
+    """Per-Gaussian colour (SH band 0) spread over training frames vs the ground-truth albedo's at the
+    Gaussians' UVs (:func:`gsavatar.metrics.temporal.frame_dependence`); None without ``gt/textures``."""
+    from gsavatar.metrics.temporal import frame_dependence
+    from gsavatar.models.config import SH_C0
+
+    uv = scene.hierarchy.gaussians.uv
+    frames = select_frames(scene.capture.splits["train"].frames, num_frames)
+    gt_dir = scene.capture.root / "gt" / "textures"
+    if uv is None or not all((gt_dir / f"{f:08d}.png").exists() for f in frames):
+        return None
+    dev = next(net.parameters()).device
+    net.eval()
+    data = ViewDataset(scene, "train", cameras=scene.capture.splits["train"].cameras[:1], frames=frames,
+                       with_texture=net.encoder is not None, texture_source=texture_source)
+    uv_t = torch.from_numpy(np.asarray(uv)).float()
+    pred, gt = [], []
+    for f in frames:
+        b = {k: v[None].to(dev) for k, v in data.frame_inputs(f).items()}
+        face = b["face"] if b["face"].numel() else None
+        out = net(b["pose"], b["root_rotation"], b["root_translation"], face, b.get("texture"), None, 0, True).avatar
+        pred.append((out.sh[0, :, 0] * SH_C0 + 0.5).clamp(0, 1).cpu())  # [G, 3]
+        tex = torch.from_numpy(data.gt_texture(f)).permute(2, 0, 1)[None]  # [1, 3, S, S]
+        gt.append(sample_at_uv(tex, uv_t)[0])  # [G, 3]
+    gt_t = torch.stack(gt)
+    outside_face = (gt_t.abs().amax(dim=(0, 2)) > 0).double()  # the face (blanked, explained by the face input) is left out
+    return frame_dependence(torch.stack(pred), gt_t, outside_face) | {"frames": len(frames)}
 
 
 @torch.no_grad()
