@@ -1,9 +1,11 @@
-"""Regenerate docs/results.md: the paper's comparison on a synthetic capture.
+"""Regenerate docs/results.md and docs/results.json: the paper's comparison on synthetic captures.
 
-    PYTHONPATH=src .venv/bin/python benchmarks/results_table.py --runs out/demo --out docs/results.md
+    PYTHONPATH=src .venv/bin/python benchmarks/results_table.py --runs small=out/demo second=out/cap2 \
+        --out docs/results.md          # also writes docs/results.json
 
-Expects runs trained on the same dataset (``avatar-train avatar``): ``run_ours`` (with a trained
-predictor, ``avatar-train predictor``), ``run_mmlps`` (``--variant mmlps_dagger``), ``run_nrfgca``
+Per capture (``LABEL=DIR``), expects runs trained on the same dataset (``avatar-train avatar``): ``run_ours``
+(with a trained predictor, ``avatar-train predictor``), optionally ``run_oracle`` (``--texture-source gt``:
+the encoder reads the ground-truth albedo, an upper bound of the latent path), ``run_mmlps`` (``--variant mmlps_dagger``), ``run_nrfgca``
 (``--variant nrfgca_dagger``) and, when
 present, ``run_wo_local_pose`` / ``run_wo_local_pca`` and ``run_ours_tinymodel`` (``--preset tiny --steps 1200
 --correctives-step 200``: the same schedule with (64, 64) anchor MLPs instead of (128, 128, 128), for speed
@@ -33,6 +35,7 @@ ROWS = [
     ("Ours (predictor, pose init)", "run_ours", "pose_init"),
     ("Ours (re-init. 30)", "run_ours", "reinit"),
     ("Ours (encoder)", "run_ours", "encoder"),
+    ("Oracle: ours on ground-truth albedo (encoder)", "run_oracle", "encoder"),
     ("Ours, tiny MLPs (64, 64) (encoder)", "run_ours_tinymodel", "encoder"),
     ("MMLPs-dagger", "run_mmlps", "predictor"),
     ("nRFGCA-dagger", "run_nrfgca", "predictor"),
@@ -106,77 +109,123 @@ def locality(run: Path, param: str, delta: float = 0.3) -> dict:
             "region_fraction": float(region.float().mean())}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--runs", type=Path, required=True)
-    ap.add_argument("--out", type=Path, default=Path("docs/results.md"))
-    ap.add_argument("--image-scale", type=float, default=1.0)
-    ap.add_argument("--params", nargs="+", default=["RightHand.rz", "Neck.ry"])
-    a = ap.parse_args()
-    torch.set_num_threads(1)
+RUN_DIRS = ("run_ours", "run_oracle", "run_mmlps", "run_nrfgca", "run_wo_local_pose", "run_wo_local_pca",
+            "run_ours_tinymodel")
+
+
+def run_summary(run: Path) -> dict:
+    """Evaluation numbers and training cost of one finished run (``eval/metrics.json``, ``timing.json``)."""
+    ev = json.loads((run / "eval" / "metrics.json").read_text())
+    out = {"variant": ev.get("variant")}
+    for split in ("train_frames_heldout_cams", "test_frames_heldout_cams", "test_frames_heldout_cams_mean_latent"):
+        if split in ev:
+            out[split] = {k: ev[split][k] for k in ("psnr", "psnr_fg", "ssim", "lpips") if k in ev[split]}
+    out["latent_gain_db"] = ev.get("latent_gain_db")
+    fd = ev.get("frame_dependence")
+    out["frame_dependence_ratio"] = None if fd is None else fd["ratio"]
+    out["frame_dependence"] = fd
+    cfg = json.loads((run / "config.json").read_text())["train"]
+    out["texture_source"] = cfg.get("texture_source", "projected")
+    t = run / "timing.json"
+    if t.exists():
+        out.update({k: v for k, v in json.loads(t.read_text()).items() if k in ("steps", "seconds", "steps_per_s", "threads")})
+    return out
+
+
+def capture_tables(label: str, runs: Path, image_scale: float, params: list[str]) -> tuple[list[str], dict]:
+    """Markdown lines and the JSON record of one capture's runs (``runs/run_*``)."""
     rows = []
-    for label, rdir, mode in ROWS:
-        run = a.runs / rdir
+    for row_label, rdir, mode in ROWS:
+        run = runs / rdir
         if not (run / "eval" / "metrics.json").exists():  # written when training has finished
             continue
         if mode != "encoder" and rdir == "run_ours" and not (run / "predictor" / "eval.json").exists():
             continue
-        print(f"[results] {label}", flush=True)
-        rows.append((label, rdir, drive_row(run, mode, a.runs / "drive" / f"{rdir}_{mode}", a.image_scale)))
+        print(f"[results] {label}: {row_label}", flush=True)
+        rows.append((row_label, rdir, mode, drive_row(run, mode, runs / "drive" / f"{rdir}_{mode}", image_scale)))
     loc = []
     for rdir in ("run_ours", "run_mmlps", "run_nrfgca", "run_wo_local_pose", "run_wo_local_pca"):
-        if (a.runs / rdir / "eval" / "metrics.json").exists():
-            for p in a.params:
-                r = locality(a.runs / rdir, p)
+        if (runs / rdir / "eval" / "metrics.json").exists():
+            for p in params:
+                r = locality(runs / rdir, p)
                 if r:
                     loc.append((rdir, r))
-    lp = next((r[2]["lpips_net"] for r in rows if r[2].get("lpips_net")), "off")
-    lines = [
-        "# Results on the synthetic `small` capture",
-        "",
-        "Regenerated by:",
-        "",
-        "```bash",
-        f"PYTHONPATH=src .venv/bin/python benchmarks/results_table.py --runs {a.runs} --out {a.out}",
-        "```",
-        "",
-        f"Machine: {platform.system()} {platform.machine()}, {torch.get_num_threads()} torch thread(s), CPU only, "
-        f"torch {torch.__version__}. Held-out TEST frames (last 20% of the capture, novel poses and appearance states) "
-        f"seen from the held-out cameras; black background; LPIPS = {lp}.",
-        "",
-        "| method | PSNR | PSNR (mask) | SSIM | LPIPS | temporal error | drive views/s |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for label, _, m in rows:
+    summaries = {r: run_summary(runs / r) for r in RUN_DIRS if (runs / r / "eval" / "metrics.json").exists()}
+    lp = next((r[3]["lpips_net"] for r in rows if r[3].get("lpips_net")), "off")
+    lines = [f"## {label}", "", f"Runs in `{runs}`. Held-out TEST frames (last 20% of the capture, novel poses and "
+             f"appearance states) seen from the held-out cameras, driven by `avatar-drive`; black background; "
+             f"LPIPS = {lp}.", "",
+             "| method | PSNR | PSNR (mask) | SSIM | LPIPS | temporal error | drive views/s |",
+             "|---|---|---|---|---|---|---|"]
+    for row_label, _, _, m in rows:
         lpips = f"{m['lpips']:.4f}" if m.get("lpips") is not None else "-"
-        lines.append(f"| {label} | {m['psnr']:.2f} | {m['psnr_fg']:.2f} | {m['ssim']:.4f} | {lpips} | "
+        lines.append(f"| {row_label} | {m['psnr']:.2f} | {m['psnr_fg']:.2f} | {m['ssim']:.4f} | {lpips} | "
                      f"{m['temporal_error']:.4f} | {m['fps_drive']:.2f} |")
-    lines += ["", "Locality (paper fig. 6): +0.3 rad on one pose parameter at the first test frame; mean change of "
-              "Gaussian colour (RGB, 0..1) and canonical position outside / inside the parameter's region of influence "
-              "(Gaussians whose anchors have the parameter in their pose mask).", "",
-              "| run | parameter | colour outside | colour inside | position outside (mm) | position inside (mm) | region |",
-              "|---|---|---|---|---|---|---|"]
-    for rdir, r in loc:
-        lines.append(f"| {rdir} | {r['param']} | {r['outside_colour']:.5f} | {r['inside_colour']:.5f} | "
-                     f"{r['outside_pos_mm']:.3f} | {r['inside_pos_mm']:.3f} | {r['region_fraction']:.1%} |")
-    gains = []
-    for rdir in ("run_ours", "run_ours_tinymodel", "run_wo_local_pose", "run_wo_local_pca"):
-        ev = a.runs / rdir / "eval" / "metrics.json"
-        if ev.exists() and "latent_gain_db" in (m := json.loads(ev.read_text())):
-            gains.append((rdir, m))
-    if gains:
-        lines += ["", "Use of the appearance latent (`avatar-train eval`): PSNR inside the mask on held-out cameras of "
-                  "test frames with the encoder's latents vs with every frame's latents replaced by the training frames' "
-                  "mean latent. ~0 dB would mean the avatar ignores its latents.", "",
-                  "| run | encoder latents | mean latent | gain (dB) |", "|---|---|---|---|"]
-        for rdir, m in gains:
-            lines.append(f"| {rdir} | {m['test_frames_heldout_cams']['psnr_fg']:.2f} | "
-                         f"{m['test_frames_heldout_cams_mean_latent']['psnr_fg']:.2f} | {m['latent_gain_db']:+.2f} |")
+    if summaries:
+        lines += ["", "Training runs (`avatar-train eval`, encoder latents; held-out cameras; PSNR inside the mask). "
+                  "*Latent gain*: test frames with the encoder's latents minus the same with the training frames' mean "
+                  "latent. *Frame dependence*: the avatar's per-Gaussian colour std over 24 training frames / the "
+                  "ground-truth albedo's at the same points (1 = all of the change, 0 = static). The oracle encodes "
+                  "the ground-truth albedo instead of the projected texture.", "",
+                  "| run | train frames (mask) | test frames (mask) | latent gain (dB) | frame dependence | steps | "
+                  "minutes | steps/s |", "|---|---|---|---|---|---|---|---|"]
+        for rdir, m in summaries.items():
+            g = m.get("latent_gain_db")
+            fd = m.get("frame_dependence_ratio")
+            minutes = f"{m['seconds'] / 60:.1f}" if "seconds" in m else "-"
+            lines.append(
+                f"| {rdir} | {m['train_frames_heldout_cams']['psnr_fg']:.2f} | "
+                f"{m.get('test_frames_heldout_cams', {}).get('psnr_fg', float('nan')):.2f} | "
+                f"{'-' if g is None else f'{g:+.2f}'} | {'-' if fd is None else f'{fd:.2f}'} | {m.get('steps', '-')} | "
+                f"{minutes} | {m.get('steps_per_s', '-')} |")
+    if loc:
+        lines += ["", "Locality (paper fig. 6): +0.3 rad on one pose parameter at the first test frame; mean change "
+                  "of Gaussian colour (RGB, 0..1) and canonical position outside / inside the parameter's region.", "",
+                  "| run | parameter | colour outside | colour inside | position outside (mm) | position inside (mm) | region |",
+                  "|---|---|---|---|---|---|---|"]
+        for rdir, r in loc:
+            lines.append(f"| {rdir} | {r['param']} | {r['outside_colour']:.5f} | {r['inside_colour']:.5f} | "
+                         f"{r['outside_pos_mm']:.3f} | {r['inside_pos_mm']:.3f} | {r['region_fraction']:.1%} |")
+    record = {"runs_dir": str(runs), "runs": summaries,
+              "drive_rows": [{"method": lab, "run": rdir, "mode": mode, **m} for lab, rdir, mode, m in rows],
+              "locality": [{"run": rdir, **r} for rdir, r in loc]}
+    ours, oracle = summaries.get("run_ours", {}), summaries.get("run_oracle", {})
+    if ours.get("latent_gain_db") is not None and oracle.get("latent_gain_db"):
+        record["latent_gain_vs_oracle"] = ours["latent_gain_db"] / oracle["latent_gain_db"]
+    return lines, record
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--runs", nargs="+", required=True, help="LABEL=DIR (or DIR) of each capture's runs")
+    ap.add_argument("--out", type=Path, default=Path("docs/results.md"))
+    ap.add_argument("--json", type=Path, default=None, help="machine-readable copy (default: --out with .json)")
+    ap.add_argument("--image-scale", type=float, default=1.0)
+    ap.add_argument("--params", nargs="+", default=["RightHand.rz", "Neck.ry"])
+    a = ap.parse_args()
+    torch.set_num_threads(1)
+    caps = []
+    for spec in a.runs:
+        label, sep, d = spec.partition("=")
+        caps.append((label, Path(d)) if sep else (Path(spec).name, Path(spec)))
+    lines = ["# Results on synthetic captures", "", "Regenerated by:", "", "```bash",
+             f"PYTHONPATH=src .venv/bin/python benchmarks/results_table.py --runs {' '.join(a.runs)} --out {a.out}",
+             "```", "",
+             f"Machine: {platform.system()} {platform.machine()}, CPU only, torch {torch.__version__}; training threads "
+             f"as in each run's `timing.json` (the 2-core box was shared by two trainings at a time, so steps/s are "
+             f"comparable only within a table).", ""]
+    record = {"machine": {"system": platform.system(), "machine": platform.machine(), "torch": torch.__version__,
+                          "device": "cpu"}, "captures": {}}
+    for label, runs in caps:
+        cl, cr = capture_tables(label, runs, a.image_scale, a.params)
+        lines += cl + [""]
+        record["captures"][label] = cr
     notes = a.out.with_name("results_notes.md")
     if notes.exists():  # the hand-written reading of the numbers, kept beside the regenerated tables
-        lines += ["", notes.read_text().rstrip()]
+        lines += [notes.read_text().rstrip()]
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text("\n".join(lines) + "\n")
+    atomic_write_json(a.json or a.out.with_suffix(".json"), record)
     print("\n".join(lines))
 
 

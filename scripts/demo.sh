@@ -3,9 +3,10 @@
 # synthetic capture (real anny body + real CMU mocap) -> every avatar-prep stage -> verify
 # -> train the avatar (CPU) -> evaluate on held-out cameras/frames -> turntable video
 # -> train the appearance predictor -> drive the held-out frames autoregressively (video + metrics)
-# -> train the baselines / ablations on the same schedule -> the results table (docs/results.md layout).
+# -> one test frame rendered with the encoder's, the predictor's and the mean latent beside the ground truth.
+# STUDY=1 (opt-in, ~1.5 h more on 2 cores) also trains the oracle (ground-truth albedo into the encoder), the
+# baselines and the ablations on the same schedule and ends with the results table (docs/results.md layout).
 # Re-running resumes: finished stages and trainings are skipped.
-# BASELINES=0 skips the baselines/ablations (the table then has the rows of Ours only).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -13,7 +14,7 @@ export ANNY_CACHE_DIR=${ANNY_CACHE_DIR:-$PWD/.cache/anny}
 export VTK_DEFAULT_OPENGL_WINDOW=${VTK_DEFAULT_OPENGL_WINDOW:-vtkEGLRenderWindow}
 PRESET=${PRESET:-small}
 OUT=${OUT:-$PWD/out/demo}
-BASELINES=${BASELINES:-1}
+STUDY=${STUDY:-${BASELINES:-0}}
 if [ ! -f "$OUT/capture/capture.json" ]; then
     .venv/bin/avatar-prep synth --out "$OUT/capture" --preset "$PRESET"
 fi
@@ -30,7 +31,12 @@ train run_ours
 .venv/bin/avatar-train predictor --run "$OUT/run_ours" --steps 600 --window 8 --model.latent-pca-components 16
 .venv/bin/avatar-drive --run "$OUT/run_ours" --motion "$OUT/capture" --split test --mode predictor_encoder_init \
     --out "$OUT/drive_test"
-if [ "$BASELINES" = 1 ]; then
+.venv/bin/avatar-drive --run "$OUT/run_ours" --motion "$OUT/capture" --split test --mode encoder \
+    --out "$OUT/drive_test_encoder"
+.venv/bin/python -m gsavatar.drive.compare --run "$OUT/run_ours" --out "$OUT/latent_sources.png" \
+    --drive encoder="$OUT/drive_test_encoder" predictor="$OUT/drive_test"
+if [ "$STUDY" = 1 ]; then
+    train run_oracle --texture-source gt
     train run_mmlps --variant mmlps_dagger
     train run_nrfgca --variant nrfgca_dagger
     train run_wo_local_pose --variant wo_local_pose
@@ -39,8 +45,8 @@ if [ "$BASELINES" = 1 ]; then
         .venv/bin/avatar-train avatar --dataset "$OUT/dataset" --out "$OUT/run_ours_tinymodel" --preset tiny \
             --steps 1200 --correctives-step 200 --checkpoint-every 200
     fi
+    PYTHONPATH=src .venv/bin/python benchmarks/results_table.py --runs "$PRESET=$OUT" --out "$OUT/results.md"
 fi
-PYTHONPATH=src .venv/bin/python benchmarks/results_table.py --runs "$OUT" --out "$OUT/results.md"
 echo
 echo "UV textures (sharded, float16):   $OUT/dataset/project_uv/shard-*.npz  (manifest.json lists frames)"
 echo "UV texture previews + accuracy:   $OUT/report/uv_*.png, $OUT/report/report.json"
@@ -48,4 +54,6 @@ echo "Figures (hierarchy, influence):   $OUT/dataset/localize/*.png"
 echo "Trained avatar + metrics:         $OUT/run_ours/checkpoints/latest.pt, $OUT/run_ours/eval/metrics.json"
 echo "Turntable video:                  $OUT/run_ours/turntable.mp4"
 echo "Driven test sequence (predictor): $OUT/drive_test/drive.mp4, metrics.json, stability.png"
-echo "Results table (all rows):         $OUT/results.md  (drives in $OUT/drive/)"
+echo "Latent sources on one test frame: $OUT/latent_sources.png (ground truth | encoder | predictor | mean latent)"
+[ "$STUDY" = 1 ] && echo "Results table (all rows):         $OUT/results.md, results.json  (drives in $OUT/drive/)"
+exit 0

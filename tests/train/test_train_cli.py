@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 import torch
 
@@ -154,3 +156,31 @@ def test_encoder_is_untouched_until_the_correctives_switch_on(tiny_dataset, tmp_
     for (k, a), b in zip(net.encoder.state_dict().items(), init.encoder.state_dict().values()):
         assert torch.equal(a, b), k
     assert any(not torch.equal(a, b) for a, b in zip(net.avatar.parameters(), init.avatar.parameters()))
+
+
+def test_oracle_run_reads_ground_truth_albedo_and_eval_reports_frame_dependence(tiny_dataset, tmp_path):
+    from gsavatar.prep.project_uv import resize_face_mask
+    from gsavatar.train.data import ViewDataset, load_scene
+    from gsavatar.utils.io import read_image
+
+    run = tmp_path / "oracle"
+    assert main(["avatar", "--dataset", str(tiny_dataset), *FAST, "--steps", "3", "--correctives-step", "0",
+                 "--texture-source", "gt", "--out", str(run)]) == 0
+    assert json.loads((run / "config.json").read_text())["train"]["texture_source"] == "gt"
+    assert main(["eval", "--run", str(run), "--eval-frames", "2"]) == 0
+    res = json.loads((run / "eval" / "metrics.json").read_text())
+    fd = res["frame_dependence"]
+    assert fd["std_gt"] > 0 and fd["ratio"] >= 0 and fd["frames"] >= 2
+    assert np.isfinite(res["latent_gain_db"])
+    # the encoder's input is the ground-truth albedo (face blanked like the projected textures), not the projection
+    scene = load_scene(tiny_dataset)
+    gt_data = ViewDataset(scene, "train", texture_source="gt")
+    f = gt_data.frames[0]
+    tex = gt_data.frame_inputs(f)["texture"].permute(1, 2, 0).numpy()
+    ref = read_image(scene.capture.root / "gt" / "textures" / f"{f:08d}.png")
+    S = scene.tex_size
+    ref = cv2.resize(ref, (S, S), interpolation=cv2.INTER_AREA)  # GT albedo at the prepared texture size
+    face = resize_face_mask(scene.capture.template.face_uv_mask, S)
+    np.testing.assert_allclose(tex[~face], ref[~face], atol=1e-3)  # float16 cache
+    assert (tex[face] == 0).all()
+    assert not np.allclose(tex, ViewDataset(scene, "train").frame_inputs(f)["texture"].permute(1, 2, 0).numpy())

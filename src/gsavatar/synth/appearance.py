@@ -58,6 +58,16 @@ class AppearanceConfig:
     axis; 0 = off (the default; captures built before it existed stay byte-identical)."""
     trouser_tint_period_s: float = 3.0
     """Time scale of the trouser tint drift, seconds."""
+    dye_garment: str = "none"
+    """Garment whose colour switches between ``dye_states`` discrete dyes (a Markov chain over frames, mean
+    dwell ``dye_dwell_s``, independent of pose): ``none``, ``shirt`` or ``trousers``. A large, pose-independent
+    change that recurs, so held-out frames show states the training frames saw."""
+    dye_states: int = 3
+    """Number of dye states (state 0 = the garment's own colour)."""
+    dye_dwell_s: float = 1.0
+    """Mean time a dye state persists, seconds."""
+    dye_strength: float = 0.45
+    """Per-channel colour gains of the dyes are drawn from ``[1 - s, 1 + s]``."""
     coupling: bool = True
     """Tie the trouser fold state to the coupling pose signal in train frames (spurious correlation)."""
     coupling_hysteresis: float = 0.05
@@ -256,6 +266,23 @@ class AppearanceModel:
         r_tint = np.random.default_rng(ss.spawn(1)[0])
         self.trouser_tint = (_smooth_process(r_tint, self.num_frames, self.fps, self.config.trouser_tint_period_s, 1)[:, 0]
                              if self.config.trouser_tint_range > 0 else np.zeros(self.num_frames))
+        cfg = self.config
+        if cfg.dye_garment not in ("none", "shirt", "trousers"):
+            raise ValueError(f"dye_garment must be 'none', 'shirt' or 'trousers', got {cfg.dye_garment!r}")
+        self.dye = np.zeros(self.num_frames, np.int64)
+        self._dye_gains = np.ones((1, 3), np.float32)
+        if cfg.dye_garment != "none":
+            if cfg.dye_states < 2 or not 0 < cfg.dye_strength < 1:
+                raise ValueError(f"dye_states must be >= 2 and dye_strength in (0, 1), got {cfg.dye_states}, "
+                                 f"{cfg.dye_strength}")
+            r_dye = np.random.default_rng(ss.spawn(1)[0])
+            p = min(1.0, 1.0 / max(cfg.dye_dwell_s * self.fps, 1.0))
+            self.dye = _markov_chain(r_dye, self.num_frames, cfg.dye_states, p)
+            gains = r_dye.uniform(1 - cfg.dye_strength, 1 + cfg.dye_strength, (cfg.dye_states, 3)).astype(np.float32)
+            gains[0] = 1.0
+            self._dye_gains = gains
+            self._dye_idx = np.flatnonzero(self.regions[cfg.dye_garment].ravel() > 1e-3)
+            self._dye_w = self.regions[cfg.dye_garment].ravel()[self._dye_idx][:, None].astype(np.float32)
         self._trou_idx = np.flatnonzero(self.regions["trousers"].ravel() > 1e-3)
         self._trou_w = self.regions["trousers"].ravel()[self._trou_idx][:, None].astype(np.float32)
 
@@ -446,6 +473,8 @@ class AppearanceModel:
         }
         if self.config.trouser_tint_range > 0:  # only then: older captures keep their exact states
             out["trouser_tint"] = float(self.trouser_tint[f])
+        if self.config.dye_garment != "none":
+            out["dye"] = int(self.dye[f])
         return out
 
     def texture(self, frame: int) -> np.ndarray:
@@ -461,6 +490,9 @@ class AppearanceModel:
             M = hue_rotation(cfg.hair_hue_range * float(self.hair_drift[f]))
             h = flat[self._hair_idx]
             flat[self._hair_idx] = h + self._hair_w * (h @ M.T - h)
+        if cfg.dye_garment != "none" and len(self._dye_idx):
+            g = self._dye_gains[self.dye[f]]
+            flat[self._dye_idx] *= 1 + self._dye_w * (g - 1)
         if self.config.trouser_tint_range > 0 and len(self._trou_idx):
             M = hue_rotation(cfg.trouser_tint_range * float(self.trouser_tint[f]))
             t = flat[self._trou_idx]

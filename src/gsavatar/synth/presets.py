@@ -5,7 +5,9 @@ Presets:
 - ``tiny``: decimated body (~3k vertices), 6 cameras of 128x128, 12 frames, 256^2
   texture. For unit tests: builds in seconds once the Anny cache exists.
 - ``small``: the demo capture: full body (~13.5k vertices), 12 cameras of 256x256,
-  120 frames at 30 fps (4 s, incl. a turn-around), 512^2 texture. A few minutes on 2 cores.
+  120 frames at 30 fps (4 s, incl. a turn-around), 512^2 texture, and a shirt that switches between
+  three dyes (pose-independent, ~1 s dwell) on top of the folds and drifts: an appearance change
+  large enough for the latent path to matter (docs/train.md). A few minutes on 2 cores.
 - ``hard``: stability stressors for texture projection/fusion: a sparse dome (texels
   seen by a single view), grazing top-down and floor-level cameras, a camera pointed
   away (sees nothing), a box occluding part of the body in one view only, and one
@@ -118,7 +120,8 @@ PRESETS: dict[str, SynthConfig] = {
         preset="tiny", decimate_to=3000, num_cams=6, width=128, height=128, num_frames=12, fps=15.0,
         bvh_start=1040, tex_size=256, test_fraction=0.25, test_cameras=1,
         appearance=AppearanceConfig(fold_dwell_s=0.25, drift_period_s=2.0, face_period_s=0.8)),
-    "small": SynthConfig(preset="small", tex_size=512, test_cameras=2),
+    "small": SynthConfig(preset="small", tex_size=512, test_cameras=2,
+                         appearance=AppearanceConfig(dye_garment="shirt", dye_states=3, dye_dwell_s=1.0)),
     "hard": SynthConfig(
         preset="hard", decimate_to=6000, num_cams=9, width=192, height=192, num_frames=24, fps=15.0,
         bvh_start=1000, tex_size=512, test_cameras=1, special_cameras=("top", "floor", "away"),

@@ -263,4 +263,23 @@ class Trainer:
                       f"({rate:.2f} steps/s)", flush=True)
             if self.step % cfg.checkpoint_every == 0 or self.step == stop_at:
                 self.save()
-        return {"step": self.step, **last, "seconds": time.perf_counter() - t0}
+        seconds = time.perf_counter() - t0
+        if self.rank == 0 and self.step > n0:
+            self._record_timing(self.step - n0, seconds)
+        return {"step": self.step, **last, "seconds": seconds}
+
+    def _record_timing(self, steps: int, seconds: float) -> None:
+        """Accumulate training time over the invocations of a run in ``timing.json`` (steps, seconds, steps/s,
+        threads), for the results table. Steps repeated after a resume count again (they were paid again)."""
+        path = self.out / "timing.json"
+        prev = {"steps": 0, "seconds": 0.0, "invocations": 0}
+        if path.exists():
+            try:
+                prev = {**prev, **json.loads(path.read_text())}
+            except ValueError:
+                pass  # a torn file of a killed run: start the tally again
+        tot_steps, tot_s = int(prev["steps"]) + steps, float(prev["seconds"]) + seconds
+        atomic_write_json(path, {"steps": tot_steps, "seconds": round(tot_s, 2),
+                                 "steps_per_s": round(tot_steps / max(tot_s, 1e-9), 4),
+                                 "invocations": int(prev["invocations"]) + 1, "threads": torch.get_num_threads(),
+                                 "device": str(self.device)})
