@@ -34,6 +34,7 @@ ROWS = [
     ("Ours (predictor, zero init)", "run_ours", "predictor"),
     ("Ours (predictor, pose init)", "run_ours", "pose_init"),
     ("Ours (re-init. 30)", "run_ours", "reinit"),
+    ("Ours (re-init. 8)", "run_ours", "reinit8"),
     ("Ours (encoder)", "run_ours", "encoder"),
     ("Oracle: ours on ground-truth albedo (encoder)", "run_oracle", "encoder"),
     ("Ours, tiny MLPs (64, 64) (encoder)", "run_ours_tinymodel", "encoder"),
@@ -57,8 +58,11 @@ def drive_row(run: Path, mode: str, out: Path, image_scale: float) -> dict:
     cap = json.loads((run / "config.json").read_text())["train"]["dataset"]
     capture = json.loads((Path(cap) / "dataset.json").read_text())["capture"]
     t = time.perf_counter()
+    extra = []
+    if mode.startswith("reinit") and mode != "reinit":  # reinitK: encoder every K frames
+        extra, mode = ["--reinit-every", mode[len("reinit"):]], "reinit"
     rc = drive(["--run", str(run), "--motion", capture, "--split", "test", "--mode", mode, "--out", str(out),
-                "--image-scale", str(image_scale)])
+                "--image-scale", str(image_scale), *extra])
     if rc:
         raise SystemExit(f"avatar-drive failed for {run} {mode}")
     info = json.loads((out / "drive.json").read_text())

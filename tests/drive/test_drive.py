@@ -45,6 +45,7 @@ def small_predictor(net, trained_init: bool = False) -> AppearancePredictor:
     cfg = PredictorConfig(history=4, width=16, heads=2, ff=32, latent_dim=av.latent_in, token_hidden=8,
                           latent_pca_components=4, initial_hidden=16)
     p = AppearancePredictor(cfg, av.num_anchors, np.arange(0, av.pose_dim, 5), av.pose_dim, seed=1).eval()
+    torch.nn.init.normal_(p.head.weight, std=0.1)  # the residual head starts at zero (persistence); move it
     if trained_init:
         torch.nn.init.normal_(p.initial.net[-1].weight, std=0.1)
         p.initial_ready.fill_(True)

@@ -91,6 +91,11 @@ class PredictorConfig:
     """Latent PCA coefficients are clamped to ±clamp_sigma·σ."""
     dropout: float = 0.0
     """Dropout inside the transformer block (0: training and streaming are deterministic)."""
+    residual: bool = True
+    """Predict the change from the previous latents, ``l_t = l_{t-1} + scale * head(h)`` (beyond the paper,
+    which leaves the output form open): the untrained predictor is persistence, a strong answer for
+    appearance that dwells, and training moves away from it only where the data supports it. False:
+    ``l_t = mean + scale * head(h)``. Measured in docs/train.md."""
     initial_net: bool = True
     """Build the pose-conditioned :class:`InitialLatentNet` (beyond the paper)."""
     initial_hidden: int = 128
@@ -282,8 +287,8 @@ class AppearancePredictor(nn.Module):
             self.transformer = nn.TransformerEncoder(layer, c.blocks, enable_nested_tensor=False)
             self.norm = nn.LayerNorm(D)
             self.head = nn.Linear(D, L)
-            with torch.no_grad():  # start near the training mean (outputs are mean + scale * head)
-                self.head.weight.mul_(0.1)
+            with torch.no_grad():  # start at the previous latents (residual: exact persistence) / near the mean
+                self.head.weight.mul_(0.0 if c.residual else 0.1)
                 self.head.bias.zero_()
             init_in = int(pb.shape[1]) if pb is not None else int(slots.numel())
             self.initial = InitialLatentNet(init_in, A, L, c.initial_hidden) if c.initial_net and init_in > 0 else None
@@ -365,7 +370,8 @@ class AppearancePredictor(nn.Module):
         tokens = torch.cat([self.pose_tokens(x) + self.type_embedding[0],
                             self.latent_tokens(lat) + self.type_embedding[1]], 1)  # [B, S + A, D]
         h = self.norm(self.transformer(tokens + self.positional.to(tokens)))
-        out = self.latent_mean + self.latent_scale * self.head(h[:, self.num_slots:])  # [B, A, L]
+        base = prev_latents if self.config.residual else self.latent_mean
+        out = base + self.latent_scale * self.head(h[:, self.num_slots:])  # [B, A, L]
         return self.clamp_latents(out)
 
     # ------------------------------------------------------------------ initial latents
