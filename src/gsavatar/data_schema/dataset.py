@@ -79,6 +79,15 @@ def read_dataset_json(root: Path) -> dict:
     return read_versioned_json(path, DATASET_FORMAT, "version", DATASET_VERSION)
 
 
+def dataset_fingerprint(root: Path) -> str:
+    """Content identity of a prepared dataset: sha256 over every stage's config and file checksums (not its
+    path, timings or completion times). Two preparations of the same capture with the same settings agree;
+    another subject's dataset at the same path does not."""
+    obj = read_dataset_json(Path(root))
+    ident = {name: {"config": st.get("config"), "files": st.get("files")} for name, st in sorted(obj["stages"].items())}
+    return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
+
+
 def record_stage(root: Path, stage: str, config: dict, files: list[Path], seconds: float, capture: Path | None = None) -> None:
     """Mark ``stage`` complete in dataset.json with checksums of its files."""
     obj = read_dataset_json(root)

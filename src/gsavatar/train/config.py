@@ -32,7 +32,7 @@ class TrainConfig:
     correctives_step: int = -1
     """Step from which the MLP correctives are applied (-1 = preset; paper 500)."""
     basis_lr_scale: float = 0.0
-    """Multiplier of the corrective bases' learning rates (0 = preset: 10 on CPU presets, 1 = the paper's).
+    """Multiplier of the corrective bases' learning rates (0 = preset: 30 on CPU presets, 1 = the paper's).
     The bases start at zero and Adam moves them by ~lr per step: at the paper's 1e-4 an SH0 basis needs
     ~2k steps to express a 0.1 colour change, 20x the CPU budget's corrective steps."""
     vae_noise_step: int = -2
@@ -89,9 +89,9 @@ class Schedule:
 
 PRESET_SCHEDULES: dict[str, Schedule] = {
     "tiny": Schedule(steps=150, batch_size=2, image_scale=1.0, correctives_step=30, checkpoint_every=50,
-                     basis_lr_scale=10.0, vae_noise_step=-1),
+                     basis_lr_scale=30.0, vae_noise_step=-1),
     "small": Schedule(steps=1200, batch_size=2, image_scale=1.0, correctives_step=200, checkpoint_every=200,
-                      basis_lr_scale=10.0, vae_noise_step=-1),
+                      basis_lr_scale=30.0, vae_noise_step=-1),
     "paper": Schedule(steps=100_000, batch_size=64, image_scale=1.0, correctives_step=500, checkpoint_every=2000),
 }
 """Schedules per preset; the paper trains 100k steps at batch 64 on 8 GPUs."""

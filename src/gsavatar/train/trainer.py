@@ -13,6 +13,8 @@ import torch
 from torch import Tensor, nn
 from torch.utils.data import DataLoader
 
+from gsavatar.data_schema import SchemaError
+from gsavatar.data_schema.dataset import dataset_fingerprint
 from gsavatar.models.avatar import AvatarOutput, GaussianAvatar
 from gsavatar.models.config import ModelConfig, model_preset, variant_config
 from gsavatar.models.encoder import AppearanceEncoder, LatentNorm, sample_at_uv
@@ -129,6 +131,7 @@ class Trainer:
             torch.distributed.init_process_group("nccl" if self.device.type == "cuda" else "gloo")
         self.out = Path(self.cfg.out)
         self.scene = load_scene(self.cfg.dataset)
+        self.dataset_id = dataset_fingerprint(Path(self.cfg.dataset))
         self.mcfg = model_config(self.cfg)
         self.net = build_net(self.scene, self.mcfg, self.cfg.seed).to(self.device)
         self.ddp = self.net
@@ -162,10 +165,22 @@ class Trainer:
     # ------------------------------------------------------------------ state
     def config_json(self) -> dict:
         return {"train": to_json(self.cfg), "model": self.mcfg.to_json() if hasattr(self.mcfg, "to_json") else
-                {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.mcfg.__dict__.items()}}
+                {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.mcfg.__dict__.items()},
+                "dataset_id": self.dataset_id}
 
     def _resume(self) -> None:
-        state = load_checkpoint(self.ckpt, self.config_json(), strict_config_keys=("model", "train.dataset", "train.seed", "train.batch_size"))
+        # The dataset is identified by content (stage configs + file checksums), not by how its path was spelt;
+        # checkpoints written before ``dataset_id`` existed are compared by resolved path.
+        state = load_checkpoint(self.ckpt, self.config_json(), strict_config_keys=("model", "train.seed", "train.batch_size"))
+        saved_id = state["config"].get("dataset_id")
+        if saved_id is not None and saved_id != self.dataset_id:
+            raise SchemaError(self.ckpt, "config.dataset_id", f"checkpoint was trained on another dataset (content "
+                              f"{saved_id[:12]}..., {self.cfg.dataset} is {self.dataset_id[:12]}...)")
+        if saved_id is None:
+            old = Path(state["config"]["train"]["dataset"])
+            if old.resolve() != Path(self.cfg.dataset).resolve():
+                raise SchemaError(self.ckpt, "config.train.dataset", f"checkpoint has {str(old)!r}, this run has "
+                                  f"{str(self.cfg.dataset)!r}: it belongs to another configuration")
         self.net.load_state_dict(state["modules"]["net"])
         self.optim.load_state_dict(state["optimizer"])
         self.step = int(state["step"])
