@@ -184,3 +184,24 @@ def test_oracle_run_reads_ground_truth_albedo_and_eval_reports_frame_dependence(
     np.testing.assert_allclose(tex[~face], ref[~face], atol=1e-3)  # float16 cache
     assert (tex[face] == 0).all()
     assert not np.allclose(tex, ViewDataset(scene, "train").frame_inputs(f)["texture"].permute(1, 2, 0).numpy())
+
+
+def test_resume_identifies_the_dataset_by_content_not_path(tiny_dataset, tmp_path, capsys):
+    import shutil
+
+    run = tmp_path / "r"
+    args = [*FAST, "--steps", "4", "--checkpoint-every", "2"]
+    assert main(["avatar", "--dataset", str(tiny_dataset), *args, "--max-steps-this-run", "2", "--out", str(run)]) == 0
+    link = tmp_path / "same_dataset"
+    link.symlink_to(tiny_dataset, target_is_directory=True)
+    assert main(["avatar", "--dataset", str(link), *args, "--max-steps-this-run", "1", "--out", str(run)]) == 0
+    other = tmp_path / "other"
+    shutil.copytree(tiny_dataset, other, symlinks=True)
+    meta = json.loads((other / "dataset.json").read_text())
+    name = sorted(meta["stages"])[0]
+    meta["stages"][name]["config"] = {**(meta["stages"][name]["config"] or {}), "changed": 1}  # another preparation
+    (other / "dataset.json").write_text(json.dumps(meta))
+    before = (run / "checkpoints" / "latest.pt").read_bytes()
+    assert main(["avatar", "--dataset", str(other), *args, "--out", str(run)]) == 2
+    assert "dataset_id" in capsys.readouterr().err
+    assert (run / "checkpoints" / "latest.pt").read_bytes() == before
