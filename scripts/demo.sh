@@ -28,7 +28,7 @@ train() {  # train NAME [avatar-train flags...]: one run, resumed if it exists
 }
 train run_ours
 .venv/bin/avatar-train turntable --run "$OUT/run_ours" --out "$OUT/run_ours/turntable.mp4"
-.venv/bin/avatar-train predictor --run "$OUT/run_ours" --steps 600 --window 8 --model.latent-pca-components 16
+.venv/bin/avatar-train predictor --run "$OUT/run_ours" --steps 200 --window 8 --model.latent-pca-components 16
 .venv/bin/avatar-drive --run "$OUT/run_ours" --motion "$OUT/capture" --split test --mode predictor_encoder_init \
     --out "$OUT/drive_test"
 .venv/bin/avatar-drive --run "$OUT/run_ours" --motion "$OUT/capture" --split test --mode encoder \

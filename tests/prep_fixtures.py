@@ -105,3 +105,15 @@ def arm_template(n_theta: int = 24, n_x: int = 61, blend: float = 0.05, k: int =
         face_uvs=np.array(fuv, np.int64),
         face_uv_mask=mask,
     )
+
+
+def randomize_bases(avatar, seed: int = 5, std: float = 0.05) -> None:
+    """Give a GaussianAvatar non-zero corrective bases (they start at zero), so its outputs depend on the
+    MLP coefficients. Biases and MLP weights are left as they are."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for name, p in avatar.named_parameters():
+            if not name.startswith("mlp") and not name.endswith("_bias"):
+                p.copy_(torch.randn(p.shape, generator=g) * std)

@@ -10,7 +10,7 @@ from gsavatar.models import gaussians as gm
 from gsavatar.prep.localize import build_localization
 from gsavatar.prep.pca import fit_pose_pca
 from gsavatar.prep.sample_points import build_hierarchy
-from prep_fixtures import arm_rig, arm_template
+from prep_fixtures import arm_rig, arm_template, randomize_bases
 
 
 @pytest.fixture(scope="module")
@@ -27,11 +27,7 @@ def make(prep, cfg: ModelConfig | None = None, randomize: bool = False, face_dim
     rig, h, masks, pl, pg = prep
     av = GaussianAvatar(h, masks, rig, pl, pg, cfg or model_preset("tiny"), face_dim=face_dim)
     if randomize:  # non-zero correctives so that outputs depend on the MLP inputs
-        g = torch.Generator().manual_seed(5)
-        with torch.no_grad():
-            for name, p in av.named_parameters():
-                if not name.startswith("mlp") and not name.endswith("_bias"):
-                    p.copy_(torch.randn(p.shape, generator=g) * 0.05)
+        randomize_bases(av)
     return av
 
 

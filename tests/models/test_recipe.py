@@ -15,7 +15,7 @@ from gsavatar.models.encoder import LatentNorm
 from gsavatar.prep.localize import build_localization
 from gsavatar.prep.pca import fit_pose_pca
 from gsavatar.prep.sample_points import build_hierarchy
-from prep_fixtures import arm_rig, arm_template
+from prep_fixtures import arm_rig, arm_template, randomize_bases
 
 
 @pytest.fixture(scope="module")
@@ -29,12 +29,8 @@ def prep():
 def make(prep, cfg: ModelConfig, randomize: bool = False) -> GaussianAvatar:
     rig, h, masks, pca = prep
     av = GaussianAvatar(h, masks, rig, pca, None, cfg)
-    if randomize:  # non-zero bases so that the output depends on the coefficients
-        g = torch.Generator().manual_seed(5)
-        with torch.no_grad():
-            for name, p in av.named_parameters():
-                if not name.startswith("mlp") and not name.endswith("_bias"):
-                    p.copy_(torch.randn(p.shape, generator=g) * 0.05)
+    if randomize:  # non-zero correctives so that outputs depend on the MLP inputs
+        randomize_bases(av)
     return av
 
 # tolerance per dtype for the Newton polar factor vs the SVD (round-off of ~6 iterations)
