@@ -36,7 +36,6 @@ ROWS = [
     ("Ours (re-init. 30)", "run_ours", "reinit"),
     ("Ours (re-init. 8)", "run_ours", "reinit8"),
     ("Ours (encoder)", "run_ours", "encoder"),
-    ("Oracle: ours on ground-truth albedo (encoder)", "run_oracle", "encoder"),
     ("Ours, tiny MLPs (64, 64) (encoder)", "run_ours_tinymodel", "encoder"),
     ("MMLPs-dagger", "run_mmlps", "predictor"),
     ("nRFGCA-dagger", "run_nrfgca", "predictor"),
