@@ -16,12 +16,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
 from gsavatar.drive.driver import DriveConfig, Driver, motion_inputs
-import cv2
-
 from gsavatar.drive.metrics import load_ground_truth
 from gsavatar.drive.motion import load_driving_motion
 from gsavatar.metrics.image import psnr

@@ -233,14 +233,10 @@ def polar_rotation(M: Tensor, max_iters: int = 12, tol: float | None = None) -> 
         cof, det = _cofactors(x)
         g = det.abs().clamp_min(1e-30).pow(-1.0 / 3.0)
         a, b = 0.5 * g, 0.5 / (g * det)
-        new = [a * xi + b * ci for xi, ci in zip(x, cof)]
-        if it >= 3:
-            delta = max(float((n - o).detach().abs().max()) for n, o in zip(new, x)) if new[0].numel() else 0.0
-            x = new
-            if delta <= tol:
-                break
-        else:
-            x = new
+        x, old = [a * xi + b * ci for xi, ci in zip(x, cof)], x
+        # the convergence test costs a device sync: only from the 4th iteration, when it can pass
+        if it >= 3 and (not x[0].numel() or max(float((n - o).detach().abs().max()) for n, o in zip(x, old)) <= tol):
+            break
     X = torch.stack(x, -1).reshape(M.shape)
     if any_bad:
         X = X.clone()

@@ -100,17 +100,20 @@ PRESET_SCHEDULES: dict[str, Schedule] = {
 def resolve(cfg: TrainConfig) -> TrainConfig:
     """Fill the preset's values into fields left at 0/-1."""
     s = PRESET_SCHEDULES[cfg.preset]
+    correctives_step = s.correctives_step if cfg.correctives_step < 0 else cfg.correctives_step
+    if cfg.vae_noise_step != -2:  # given
+        vae_noise_step = cfg.vae_noise_step
+    else:  # the preset's; None = with the correctives
+        vae_noise_step = correctives_step if s.vae_noise_step is None else s.vae_noise_step
     return dataclasses.replace(
         cfg,
         steps=cfg.steps or s.steps,
         batch_size=cfg.batch_size or s.batch_size,
         image_scale=cfg.image_scale or s.image_scale,
-        correctives_step=s.correctives_step if cfg.correctives_step < 0 else cfg.correctives_step,
+        correctives_step=correctives_step,
         checkpoint_every=cfg.checkpoint_every or s.checkpoint_every,
         basis_lr_scale=cfg.basis_lr_scale or s.basis_lr_scale,
-        vae_noise_step=cfg.vae_noise_step if cfg.vae_noise_step != -2 else
-        (s.correctives_step if cfg.correctives_step < 0 else cfg.correctives_step) if s.vae_noise_step is None
-        else s.vae_noise_step,
+        vae_noise_step=vae_noise_step,
     )
 
 

@@ -163,17 +163,15 @@ class ViewDataset(Dataset):
         """Ground-truth albedo of a synthetic capture (``gt/textures``), at the prepared texture size, with the
         face blanked as in the projected textures.  # [S, S, 3] float32"""
         from gsavatar.prep.project_uv import resize_face_mask
+        from gsavatar.prep.report import load_gt_texture
 
-        path = self.scene.capture.root / "gt" / "textures" / f"{frame:08d}.png"
-        if not path.exists():
+        S = self.scene.tex_size
+        tex = load_gt_texture(self.scene.capture.root, frame, S)
+        if tex is None:
             from gsavatar.data_schema import SchemaError
 
-            raise SchemaError(path, "texture_source", "texture_source='gt' needs a synthetic capture's ground-truth "
-                              "textures (gt/textures/*.png)")
-        tex = read_image(path)
-        S = self.scene.tex_size
-        if tex.shape[:2] != (S, S):
-            tex = cv2.resize(tex, (S, S), interpolation=cv2.INTER_AREA)
+            raise SchemaError(self.scene.capture.root / "gt" / "textures" / f"{frame:08d}.png", "texture_source",
+                              "texture_source='gt' needs a synthetic capture's ground-truth textures (gt/textures/*.png)")
         fm = self.scene.capture.template.face_uv_mask
         if fm is not None:
             if self._face_region is None:
