@@ -157,7 +157,8 @@ class GaussianAvatar(nn.Module):
                                         first_channels=cfg.uv_decoder_channels)
         else:
             Bg, Bc = cfg.n_basis, cfg.n_ctrl_basis
-            self.mlp = AnchorMLPs(A, P + cfg.face_dim + self.latent_in, Bg + Bc, cfg.hidden, cfg.mlp_out_init_scale, gen)
+            self.mlp = AnchorMLPs(A, P + cfg.face_dim + self.latent_in, Bg + Bc, cfg.hidden, cfg.mlp_out_init_scale, gen,
+                                   init=cfg.mlp_init)
         log_s, q = gm.init_gaussian_params(g.position, g.normal, cfg.scale_max, cfg.init_normal_scale_ratio)
         z = lambda *s: nn.Parameter(torch.zeros(*s))  # noqa: E731
         self.scale_bias = nn.Parameter(f32(log_s))  # [G, 3] log metres

@@ -37,9 +37,16 @@ def anchor_mlp_forward(x: Tensor, weights: list[Tensor], biases: list[Tensor]) -
 class AnchorMLPs(nn.Module):
     """``A`` independent MLPs ``in_dim -> hidden... -> out_dim`` with stacked weights.
 
-    Init: every anchor's layer as ``nn.Linear`` (kaiming-uniform weights with
-    ``a=sqrt(5)``, i.e. ``U(-1/sqrt(in), 1/sqrt(in))`` for weights and biases); the last
-    layer's weights and bias are multiplied by ``out_init_scale``.
+    Init (``init``):
+
+    - ``"linear"``: every anchor's layer as ``nn.Linear`` (kaiming-uniform weights with ``a=sqrt(5)``,
+      i.e. ``U(-1/sqrt(in), 1/sqrt(in))`` for weights and biases). Each ReLU layer then shrinks the
+      signal's std by ~0.4, so four layers map unit-variance inputs to outputs of std ~0.01.
+    - ``"he"``: variance-preserving: hidden weights ``U(-sqrt(6/in), sqrt(6/in))`` (He, for ReLU), last
+      layer ``U(-sqrt(3/in), sqrt(3/in))`` (unit gain), biases 0: unit-variance inputs give outputs of
+      std ~1 at any depth.
+
+    The last layer's weights and bias are multiplied by ``out_init_scale``.
     """
 
     def __init__(
@@ -50,8 +57,11 @@ class AnchorMLPs(nn.Module):
         hidden: tuple[int, ...] | list[int],
         out_init_scale: float = 1.0,
         generator: torch.Generator | None = None,
+        init: str = "linear",
     ) -> None:
         super().__init__()
+        if init not in ("linear", "he"):
+            raise ValueError(f"init must be 'linear' or 'he', got {init!r}")
         if num_anchors <= 0 or in_dim <= 0 or out_dim <= 0:
             raise ValueError(f"num_anchors, in_dim, out_dim must be > 0, got {num_anchors}, {in_dim}, {out_dim}")
         self.num_anchors = int(num_anchors)
@@ -62,10 +72,14 @@ class AnchorMLPs(nn.Module):
         self.weights = nn.ParameterList()
         self.biases = nn.ParameterList()
         for i, (d_in, d_out) in enumerate(zip(dims[:-1], dims[1:])):
-            bound = 1.0 / math.sqrt(d_in)  # nn.Linear's init for both weight and bias
-            s = out_init_scale if i == len(dims) - 2 else 1.0
+            last = i == len(dims) - 2
+            s = out_init_scale if last else 1.0
+            if init == "linear":
+                bound = b_bound = 1.0 / math.sqrt(d_in)  # nn.Linear's init for both weight and bias
+            else:
+                bound, b_bound = math.sqrt((3.0 if last else 6.0) / d_in), 0.0
             W = (torch.rand(num_anchors, d_in, d_out, generator=generator) * 2 - 1) * (bound * s)
-            b = (torch.rand(num_anchors, d_out, generator=generator) * 2 - 1) * (bound * s)
+            b = (torch.rand(num_anchors, d_out, generator=generator) * 2 - 1) * (b_bound * s)
             self.weights.append(nn.Parameter(W))  # [A, in, out]
             self.biases.append(nn.Parameter(b))  # [A, out]
 
