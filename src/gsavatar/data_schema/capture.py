@@ -27,6 +27,20 @@ import numpy as np
 from gsavatar.data_schema.errors import SchemaError
 from gsavatar.data_schema.rig import Rig, load_rig
 from gsavatar.data_schema.template import Template, load_template
+from gsavatar.data_schema.limits import check_fps
+from gsavatar.utils.jsonio import is_int
+from gsavatar.utils.paths import check_name
+
+FOCAL_RANGE = (0.01, 100.0)
+"""Plausible focal lengths, in multiples of the image's longer side (a 180° lens is ~0.3, a 1000 mm lens ~30)."""
+MAX_DISTORTION = 100.0
+"""Largest |coefficient| of the OpenCV distortion model accepted."""
+MAX_IMAGE_SIDE = 65536
+"""Largest image width/height accepted, pixels."""
+MAX_TRANSLATION_M = 1e4
+"""Largest |T| component accepted, metres."""
+MAX_FRAMES = 10_000_000
+"""Largest ``num_frames`` accepted."""
 
 CAPTURE_FORMAT = "gsavatar-capture"
 CAPTURE_VERSION = 1
@@ -125,22 +139,21 @@ class Capture:
 
 # --------------------------------------------------------------------------- helpers
 def _read_json(path: Path):
-    if not path.exists():
-        raise SchemaError(path, "", "file not found")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise SchemaError(path, f"line {e.lineno}", f"invalid JSON: {e.msg}") from None
-    except UnicodeDecodeError:
-        raise SchemaError(path, "", "not a UTF-8 JSON text file") from None
+    from gsavatar.utils.jsonio import read_json
+
+    return read_json(path)
 
 
-def _matrix(v, shape: tuple[int, ...], file: Path, fld: str) -> np.ndarray:
+def _matrix(v, shape: tuple[int, ...] | None, file: Path, fld: str) -> np.ndarray:
+    """JSON numbers (never booleans or strings) as float64 of ``shape`` (None: any), finite."""
+    flat = np.ravel(np.asarray(v, dtype=object)).tolist() if isinstance(v, (list, tuple)) else [v]
+    if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in flat):
+        raise SchemaError(file, fld, f"expected numbers{'' if shape is None else f' of shape {list(shape)}'}, got {v!r}"[:300])
     try:
         a = np.asarray(v, dtype=np.float64)
     except (TypeError, ValueError):
         raise SchemaError(file, fld, f"expected numbers of shape {list(shape)}") from None
-    if a.shape != shape:
+    if shape is not None and a.shape != shape:
         raise SchemaError(file, fld, f"expected shape {list(shape)}, got {list(a.shape)}")
     if not np.all(np.isfinite(a)):
         raise SchemaError(file, fld, "contains NaN/Inf")
@@ -152,6 +165,7 @@ def parse_calibration(obj, file: Path) -> dict[str, Camera]:
         raise SchemaError(file, "", "must be a non-empty object {camera_name: {...}}")
     cams: dict[str, Camera] = {}
     for name, c in obj.items():
+        check_name(name, file, name, "camera name")
         if not isinstance(c, dict):
             raise SchemaError(file, name, "must be an object with K, R, T, imgSize")
         for key in ("K", "R", "T", "imgSize"):
@@ -166,14 +180,27 @@ def parse_calibration(obj, file: Path) -> dict[str, Camera]:
             raise SchemaError(file, f"{name}.R", f"not a rotation (det={np.linalg.det(R):.3f}, |R R^T - I|={np.abs(R @ R.T - np.eye(3)).max():.2g})")
         dist = np.zeros(5)
         if c.get("distCoeff") is not None:
-            d = np.ravel(np.asarray(c["distCoeff"], dtype=np.float64))
-            if d.size not in (4, 5) or not np.all(np.isfinite(d)):
-                raise SchemaError(file, f"{name}.distCoeff", f"expected 4 or 5 finite numbers (k1,k2,p1,p2[,k3]), got {d.size}")
+            d = _matrix(np.ravel(np.asarray(c["distCoeff"], dtype=object)).tolist(), None, file, f"{name}.distCoeff")
+            if d.size not in (4, 5):
+                raise SchemaError(file, f"{name}.distCoeff", f"expected 4 or 5 numbers (k1,k2,p1,p2[,k3]), got {d.size}")
+            if np.abs(d).max() > MAX_DISTORTION:
+                raise SchemaError(file, f"{name}.distCoeff", f"implausible coefficients {d.tolist()} (|k| > {MAX_DISTORTION:g})")
             dist[: d.size] = d
         size = c["imgSize"]
-        if not (isinstance(size, (list, tuple)) and len(size) == 2 and all(isinstance(s, int) and s > 0 for s in size)):
-            raise SchemaError(file, f"{name}.imgSize", f"expected [width, height] positive integers, got {size!r}")
-        cams[name] = Camera(name, K, R, T, dist, int(size[0]), int(size[1]))
+        if not (isinstance(size, (list, tuple)) and len(size) == 2 and all(is_int(s) and 0 < s <= MAX_IMAGE_SIDE for s in size)):
+            raise SchemaError(file, f"{name}.imgSize", f"expected [width, height], integers in [1, {MAX_IMAGE_SIDE}], got {size!r}")
+        w, h = int(size[0]), int(size[1])
+        side = max(w, h)
+        for i, ax in ((0, "fx"), (1, "fy")):
+            if not FOCAL_RANGE[0] * side <= K[i, i] <= FOCAL_RANGE[1] * side:
+                raise SchemaError(file, f"{name}.K", f"{ax} = {K[i, i]:g} px is implausible for a {w}x{h} image "
+                                  f"(expected {FOCAL_RANGE[0]:g}-{FOCAL_RANGE[1]:g} x {side} px)")
+        if not (-w <= K[0, 2] <= 2 * w and -h <= K[1, 2] <= 2 * h) or abs(K[0, 1]) > K[0, 0]:
+            raise SchemaError(file, f"{name}.K", f"principal point ({K[0, 2]:g}, {K[1, 2]:g}) or skew {K[0, 1]:g} "
+                              f"implausible for a {w}x{h} image")
+        if np.abs(T).max() > MAX_TRANSLATION_M:
+            raise SchemaError(file, f"{name}.T", f"{T.tolist()}: more than {MAX_TRANSLATION_M:g} m (units are metres)")
+        cams[name] = Camera(name, K, R, T, dist, w, h)
     return cams
 
 
@@ -184,15 +211,18 @@ def _real_array(a: np.ndarray, file: Path, fld: str) -> np.ndarray:
     return a.astype(np.float32)
 
 
-def load_motion(path: Path, num_frames: int, pose_dim: int) -> Motion:
+def load_motion(path: Path, num_frames: int, pose_dim: int, frames_from: Path | None = None) -> Motion:
+    """``frames_from``: the file ``num_frames`` comes from (capture.json), named when the frame counts disagree."""
     from gsavatar.utils.io import read_npz
 
-    z = read_npz(path)
+    z = read_npz(path, keys=("pose", "root_rotation", "root_translation", "face"))
     arrays = {}
     for key, width in (("pose", pose_dim), ("root_rotation", 3), ("root_translation", 3)):
         if key not in z:
             raise SchemaError(path, key, f"missing; has {sorted(z)}")
         a = z[key]
+        if a.ndim == 2 and a.shape[1] == width and a.shape[0] != num_frames and frames_from is not None:
+            raise SchemaError(frames_from, "num_frames", f"says {num_frames} frames, but {path.name} {key} has {a.shape[0]}")
         if a.ndim != 2 or a.shape != (num_frames, width):
             raise SchemaError(path, key, f"expected shape [{num_frames}, {width}], got {list(a.shape)}")
         arrays[key] = _real_array(a, path, key)
@@ -215,11 +245,14 @@ def parse_splits(obj, file: Path, num_frames: int, cameras: dict[str, Camera]) -
         raise SchemaError(file, "train", "missing")
     out: dict[str, Split] = {}
     for name, s in obj.items():
+        check_name(name, file, name, "split name")
         if not isinstance(s, dict) or "frames" not in s or "cameras" not in s:
             raise SchemaError(file, name, "needs 'frames' and 'cameras'")
         frames = s["frames"]
-        if not isinstance(frames, list) or not all(isinstance(f, int) for f in frames):
-            raise SchemaError(file, f"{name}.frames", "must be a list of integer frame indices")
+        if not isinstance(frames, list) or not all(is_int(f) for f in frames):
+            raise SchemaError(file, f"{name}.frames", "must be a list of integer frame indices (not booleans)")
+        if len(set(frames)) != len(frames):
+            raise SchemaError(file, f"{name}.frames", f"frame {next(f for f in frames if frames.count(f) > 1)} listed twice")
         if not frames:
             raise SchemaError(file, f"{name}.frames", "empty")
         bad = [f for f in frames if not 0 <= f < num_frames]
@@ -228,10 +261,24 @@ def parse_splits(obj, file: Path, num_frames: int, cameras: dict[str, Camera]) -
         cams = s["cameras"]
         if not isinstance(cams, list) or not cams:
             raise SchemaError(file, f"{name}.cameras", "must be a non-empty list of camera names")
-        unknown = [c for c in cams if c not in cameras]
+        unknown = [c for c in cams if not isinstance(c, str) or c not in cameras]
         if unknown:
             raise SchemaError(file, f"{name}.cameras", f"unknown camera {unknown[0]!r} (not in calibration.json)")
+        if len(set(cams)) != len(cams):
+            raise SchemaError(file, f"{name}.cameras", f"camera {next(c for c in cams if cams.count(c) > 1)!r} listed twice")
         out[name] = Split(list(frames), list(cams))
+    # Held-out metrics are only held out if nothing of them was trained on.
+    train = out["train"]
+    for name, sp in out.items():
+        if name == "train":
+            continue
+        both = sorted(set(sp.cameras) & set(train.cameras))
+        if both:
+            raise SchemaError(file, f"{name}.cameras", f"camera {both[0]!r} is also in train.cameras: splits must not share cameras")
+        shared = sorted(set(sp.frames) & set(train.frames))
+        if shared:
+            raise SchemaError(file, f"{name}.frames", f"frame {shared[0]} is also in train.frames ({len(shared)} shared): "
+                              "splits must not share frames")
     return out
 
 
@@ -261,19 +308,17 @@ def load_capture(root: str | Path, check_files: bool = True) -> Capture:
         raise SchemaError(info_path, "format", f"expected {CAPTURE_FORMAT!r}, got {info.get('format')!r}")
     if info.get("version") != CAPTURE_VERSION:
         raise SchemaError(info_path, "version", f"unsupported version {info.get('version')!r}; this gsavatar reads {CAPTURE_VERSION}")
-    fps = info.get("fps")
-    if not isinstance(fps, (int, float)) or not np.isfinite(fps) or fps <= 0:
-        raise SchemaError(info_path, "fps", f"must be a positive number, got {fps!r}")
+    fps = check_fps(info.get("fps"), info_path, "fps")
     nf = info.get("num_frames")
-    if not isinstance(nf, int) or nf <= 0:
-        raise SchemaError(info_path, "num_frames", f"must be a positive integer, got {nf!r}")
+    if not is_int(nf) or not 0 < nf <= MAX_FRAMES:
+        raise SchemaError(info_path, "num_frames", f"must be an integer in [1, {MAX_FRAMES}], got {nf!r}")
     if info.get("units", "m") != "m":
         raise SchemaError(info_path, "units", f"only metres ('m') are supported, got {info.get('units')!r}")
     cal_path = root / "calibration.json"
     cameras = parse_calibration(_read_json(cal_path), cal_path)
     rig = load_rig(root / "template" / "rig.json")
     template = load_template(root / "template", rig.num_joints)
-    motion = load_motion(root / "motion.npz", nf, rig.pose_dim)
+    motion = load_motion(root / "motion.npz", nf, rig.pose_dim, frames_from=info_path)
     splits = parse_splits(_read_json(root / "splits.json"), root / "splits.json", nf, cameras)
     cap = Capture(root, float(fps), nf, cameras, rig, template, motion, splits)
     if check_files:
@@ -293,13 +338,18 @@ def check_images(cap: Capture, frames: list[int] | None = None, cams: list[str] 
             for p in (cap.image_path(cam, f), cap.mask_path(cam, f)):
                 if not p.exists():
                     raise SchemaError(p, "", f"missing ({'mask' if 'masks' in p.parts else 'image'} of camera {cam!r}, frame {f})")
+                if not p.is_file():  # a FIFO would block the reader forever
+                    raise SchemaError(p, "", "not a regular file")
                 inp = oiio.ImageInput.open(str(p))
                 if inp is None:
                     raise SchemaError(p, "", f"cannot open image: {oiio.geterror()}")
                 spec = inp.spec()
                 inp.close()
-                if (spec.width, spec.height) != (c.width, c.height):
-                    raise SchemaError(p, "size", f"is {spec.width}x{spec.height}, calibration.json says {c.width}x{c.height} for {cam!r}")
+                w, h = spec.width, spec.height
+                if spec.get_int_attribute("Orientation", 1) in (5, 6, 7, 8):  # EXIF: shown rotated by 90 degrees
+                    w, h = h, w  # read_image applies the orientation, so the upright size must match
+                if (w, h) != (c.width, c.height):
+                    raise SchemaError(p, "size", f"is {w}x{h}, calibration.json says {c.width}x{c.height} for {cam!r}")
 
 
 def write_capture_metadata(root: str | Path, fps: float, num_frames: int, cameras: dict[str, Camera],

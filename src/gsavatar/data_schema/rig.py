@@ -24,6 +24,8 @@ from typing import Literal
 import numpy as np
 
 from gsavatar.data_schema.errors import SchemaError
+from gsavatar.utils.jsonio import is_number, read_json
+from gsavatar.utils.paths import check_name
 
 BODY_GROUPS: tuple[str, ...] = (
     "torso_head",
@@ -138,6 +140,8 @@ class Rig:
 
 
 def _vec3(v, file: Path, fld: str) -> tuple[float, float, float]:
+    if not isinstance(v, (list, tuple)) or not all(is_number(x) for x in v):
+        raise SchemaError(file, fld, f"expected 3 finite numbers, got {v!r}"[:200])
     try:
         a = np.asarray(v, dtype=np.float64)
     except (TypeError, ValueError):
@@ -159,11 +163,17 @@ def rig_from_json(obj: dict, file: str | Path = "rig.json") -> Rig:
             raise SchemaError(file, key, "missing")
     joints: list[Joint] = []
     seen: set[str] = set()
+    for key in ("joints", "pose_params"):
+        if not isinstance(obj[key], list):
+            raise SchemaError(file, key, f"must be a list, got {type(obj[key]).__name__}")
     for i, j in enumerate(obj["joints"]):
         fld = f"joints[{i}]"
         if not isinstance(j, dict) or "name" not in j or "head" not in j:
             raise SchemaError(file, fld, "needs 'name', 'parent' and 'head'")
+        check_name(j["name"], file, f"{fld}.name", "joint name")
         parent = j.get("parent")
+        if parent is not None and not isinstance(parent, str):
+            raise SchemaError(file, f"{fld}.parent", f"must be a joint name or null, got {parent!r}")
         if parent is not None and parent not in seen:
             raise SchemaError(file, f"{fld}.parent", f"parent {parent!r} of {j['name']!r} is not listed before it")
         if parent is None and joints:
@@ -180,10 +190,13 @@ def rig_from_json(obj: dict, file: str | Path = "rig.json") -> Rig:
         fld = f"pose_params[{i}]"
         if not isinstance(p, dict) or not {"name", "joint", "kind"} <= set(p):
             raise SchemaError(file, fld, "needs 'name', 'joint' and 'kind'")
-        if p["joint"] not in seen:
+        check_name(p["name"], file, f"{fld}.name", "pose parameter name")
+        if not isinstance(p["joint"], str) or p["joint"] not in seen:
             raise SchemaError(file, f"{fld}.joint", f"unknown joint {p['joint']!r}")
         if p["name"] in pnames:
             raise SchemaError(file, f"{fld}.name", f"duplicate parameter {p['name']!r}")
+        if not isinstance(p["kind"], str):
+            raise SchemaError(file, f"{fld}.kind", f"expected 'euler' or 'axis_angle', got {p['kind']!r}")
         if p["kind"] == "euler":
             if "axis" not in p:
                 raise SchemaError(file, f"{fld}.axis", "euler parameters need an axis")
@@ -205,6 +218,8 @@ def rig_from_json(obj: dict, file: str | Path = "rig.json") -> Rig:
         raise SchemaError(file, "groups", f"unknown groups {sorted(unknown)}; expected {list(BODY_GROUPS)}")
     owner: dict[str, str] = {}
     for g, names in groups.items():
+        if not isinstance(names, list):
+            raise SchemaError(file, f"groups.{g}", f"must be a list of parameter names, got {type(names).__name__}")
         for n in names:
             if n not in pnames:
                 raise SchemaError(file, f"groups.{g}", f"unknown pose parameter {n!r}")
@@ -219,12 +234,4 @@ def rig_from_json(obj: dict, file: str | Path = "rig.json") -> Rig:
 
 def load_rig(path: str | Path) -> Rig:
     path = Path(path)
-    try:
-        obj = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise SchemaError(path, "", "file not found") from None
-    except json.JSONDecodeError as e:
-        raise SchemaError(path, f"line {e.lineno}", f"invalid JSON: {e.msg}") from None
-    except UnicodeDecodeError:
-        raise SchemaError(path, "", "not a UTF-8 JSON text file") from None
-    return rig_from_json(obj, path)
+    return rig_from_json(read_json(path), path)

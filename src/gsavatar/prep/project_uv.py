@@ -533,7 +533,58 @@ def iter_frame_views(capture: Capture, frame: int, cams: Sequence[str] | None = 
             raise SchemaError(ip, "size", f"is {img.shape[1]}x{img.shape[0]}, calibration.json says {cam.width}x{cam.height} for {name!r}")
         if mask.shape[:2] != (cam.height, cam.width):
             raise SchemaError(mp, "size", f"is {mask.shape[1]}x{mask.shape[0]}, calibration.json says {cam.width}x{cam.height} for {name!r}")
+        warn_mask_coverage(mp, mask)
         yield cam, img, mask
+
+
+MIN_FOREGROUND = 1e-4
+"""A mask with less than this fraction of foreground pixels counts as empty (warning per view)."""
+MAX_FOREGROUND = 0.98
+"""A mask with more than this fraction of foreground counts as full (no background: warning per view)."""
+
+
+def mask_coverage(mask: np.ndarray) -> float:
+    """Fraction of pixels with foreground > 0.5.  mask [H, W] in [0, 1]"""
+    return float((mask > 0.5).mean()) if mask.size else 0.0
+
+
+def warn_mask_coverage(path, mask: np.ndarray) -> str | None:
+    """Print (and return) a warning for an empty or full mask."""
+    c = mask_coverage(mask)
+    msg = None
+    if c < MIN_FOREGROUND:
+        msg = f"warning: {path}: no foreground ({100 * c:.3f}% of pixels > 0.5)"
+    elif c > MAX_FOREGROUND:
+        msg = f"warning: {path}: {100 * c:.1f}% foreground (no background: is the mask inverted or in another channel?)"
+    if msg:
+        print(msg)
+    return msg
+
+
+def check_mask_coverage(capture: Capture, cams: Sequence[str], max_frames: int = 8, min_ok: float = 0.5) -> None:
+    """Refuse a capture whose masks are (almost) all empty or all full, before anything is projected.
+
+    Reads the masks of ``cams`` in up to ``max_frames`` evenly spaced frames; if fewer than ``min_ok``
+    of them have between MIN_FOREGROUND and MAX_FOREGROUND foreground, the textures would be empty (or
+    full of background): SchemaError naming the masks folder, with examples. Single odd views only warn.
+    """
+    from gsavatar.data_schema.errors import SchemaError
+    from gsavatar.utils.io import read_mask
+
+    frames = sorted({int(f) for f in np.linspace(0, capture.num_frames - 1, min(max_frames, capture.num_frames)).round()})
+    bad: list[str] = []
+    n = 0
+    for f in frames:
+        for name in cams:
+            p = capture.mask_path(name, f)
+            c = mask_coverage(read_mask(p))
+            n += 1
+            if not MIN_FOREGROUND <= c <= MAX_FOREGROUND:
+                bad.append(f"{p.relative_to(capture.root)} ({100 * c:.2f}%)")
+    if n and (n - len(bad)) / n < min_ok:
+        raise SchemaError(capture.root / "masks", "", f"{len(bad)} of {n} sampled masks are empty or all foreground, "
+                          f"e.g. {', '.join(bad[:3])}: the textures would be empty or background; masks must be white "
+                          "(or 1, or the alpha) on the body and 0 elsewhere (docs/data_schema.md, Masks)")
 
 
 def load_frame_views(capture: Capture, frame: int, cams: Sequence[str] | None = None) -> list[View]:

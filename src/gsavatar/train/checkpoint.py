@@ -10,13 +10,15 @@ checkpoint is complete, so ``kill -9`` at any point leaves a loadable file.
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
 import torch
 
 from gsavatar.data_schema.errors import SchemaError
-from gsavatar.utils.io import atomic_path
+from gsavatar.utils.io import atomic_write_bytes
+from gsavatar.utils.jsonio import parse_json_text
 
 CHECKPOINT_FORMAT = "gsavatar-avatar-checkpoint"
 CHECKPOINT_VERSION = 1
@@ -33,8 +35,18 @@ def save_checkpoint(path: str | Path, *, step: int, config: dict, modules: dict[
         "optimizer": optimizer.state_dict() if optimizer is not None else None,
         "extra": extra or {},
     }
-    with atomic_path(path, suffix=".pt") as tmp:
-        torch.save(state, tmp)
+    # Serialise in memory, then one atomic write: a full disk then raises OSError(ENOSPC) naming the file
+    # (torch's zip writer turns it into "RuntimeError: ... unexpected pos"), and latest.pt stays intact.
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    atomic_write_bytes(path, buf.getbuffer())
+
+
+def resume_hint(ckpt: Path, step: int) -> str:
+    """What a command says about resuming when it is interrupted (Ctrl-C, disk full)."""
+    if Path(ckpt).exists():
+        return f"re-run the same command to resume from step {step} ({ckpt})"
+    return "no checkpoint yet: re-running the same command starts from step 0"
 
 
 def load_checkpoint(path: str | Path, config: dict | None = None, strict_config_keys: tuple[str, ...] = ()) -> dict:
@@ -54,7 +66,11 @@ def load_checkpoint(path: str | Path, config: dict | None = None, strict_config_
         raise SchemaError(path, "format", "not a gsavatar avatar checkpoint")
     if state.get("version") != CHECKPOINT_VERSION:
         raise SchemaError(path, "version", f"unsupported checkpoint version {state.get('version')!r}")
-    saved = json.loads(state["config"])
+    if not isinstance(state.get("config"), str):
+        raise SchemaError(path, "config", "missing (not a gsavatar avatar checkpoint)")
+    saved = parse_json_text(state["config"], path)
+    if not isinstance(saved, dict):
+        raise SchemaError(path, "config", f"expected a JSON object, got {type(saved).__name__}")
     state["config"] = saved
     if config is not None:
         for key in strict_config_keys:

@@ -10,6 +10,7 @@ import torch
 from gsavatar.train.data import ViewDataset
 from gsavatar.train.trainer import AvatarNet, render_views
 from gsavatar.utils.io import write_image
+from gsavatar.utils.paths import output_path
 
 
 def select_frames(frames: list[int], n: int) -> list[int]:
@@ -61,7 +62,7 @@ def evaluate_views(net: AvatarNet, data: ViewDataset, device: torch.device, sh_d
             err = (pred - gt).abs().mean(1, keepdim=True).expand_as(pred) * 4
             panel = torch.cat([gt[0], pred[0], err[0].clamp(0, 1)], dim=2).permute(1, 2, 0).cpu().numpy()
             frame, cam = data.items[i]
-            write_image(Path(save_dir) / f"eval_{frame:08d}_{cam}.png", panel)
+            write_image(output_path(save_dir, f"eval_{frame:08d}_{cam}.png"), panel)
             saved += 1
     # nanmean: a view whose eroded mask is empty (tiny images) has no interior PSNR
     return {k: float(np.nanmean(v)) if np.isfinite(v).any() else float("nan") for k, v in rows.items()} | {"views": len(data)}

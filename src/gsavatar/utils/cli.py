@@ -1,13 +1,30 @@
-"""Shared behaviour of the command-line tools."""
+"""Shared behaviour of the command-line tools: one line per failure, never a traceback.
+
+Exit codes: 0 success, 2 bad input (a file or option the user can fix; the message names it),
+1 the environment failed (disk full), 130 interrupted (Ctrl-C). In every case the files already
+written stay intact (atomic writes), and a resumable command says how to resume.
+"""
 
 from __future__ import annotations
 
+import errno
 import os
+import shutil
 import sys
 from collections.abc import Callable
 
 PATH_ERRORS = (FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError, PermissionError)
 """OS errors that mean a bad path on the command line (or in a file it names), not a bug."""
+
+EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED = 2, 1, 130
+
+_RESUME_HINT: list[str] = []
+"""What the running command says about resuming after a fault or Ctrl-C (set by resumable commands)."""
+
+
+def set_resume_hint(text: str) -> None:
+    """Replace the running command's resume hint, e.g. ``"re-run the same command to resume from step 400"``."""
+    _RESUME_HINT[:] = [text]
 
 
 def describe_path_error(e: OSError) -> str:
@@ -21,16 +38,56 @@ def describe_path_error(e: OSError) -> str:
     return msg
 
 
+def describe_no_space(e: OSError) -> str:
+    """``no space left on <path> (<free> MiB free there)`` for ENOSPC / EDQUOT / EFBIG."""
+    path = str(e.filename) if e.filename else "the output device"
+    free = ""
+    if e.filename:
+        d = os.path.dirname(os.path.abspath(path))
+        while d and not os.path.isdir(d):
+            d = os.path.dirname(d)
+        try:
+            free = f" ({shutil.disk_usage(d).free / 2**20:.0f} MiB free there)"
+        except OSError:
+            pass
+    what = {errno.EFBIG: "file size limit reached", errno.EDQUOT: "disk quota exceeded"}.get(e.errno, "no space left")
+    return f"{what} on {path}{free}"
+
+
+def _hint() -> str:
+    return f"; {_RESUME_HINT[0]}" if _RESUME_HINT else ""
+
+
 def run_reporting_errors(fn: Callable[[], object]) -> int:
-    """Run ``fn``; bad input (SchemaError/ValueError, missing or existing files, a file where a
-    directory belongs) becomes ``error: <file>: <field>: <message>`` on stderr and exit code 2,
-    never a traceback."""
+    """Run ``fn`` and turn failures into one line on stderr and an exit code (module docstring).
+
+    Bad input (SchemaError/ValueError, missing or existing files, a file where a directory belongs):
+    ``error: <file>: <field>: <message>``, exit 2. Disk full: ``error: no space left on <path>``, exit 1.
+    Ctrl-C: ``interrupted``, exit 130. The output-root registry of :mod:`gsavatar.utils.paths` and the
+    resume hint are reset before and after, so one command never inherits another's.
+    """
+    from gsavatar.utils.io import NO_SPACE_ERRNOS
+    from gsavatar.utils.paths import clear_output_roots
+
+    clear_output_roots()
+    _RESUME_HINT.clear()
     try:
         fn()
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: nothing half-written was left behind{_hint()}", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except PATH_ERRORS as e:
         print(f"error: {describe_path_error(e)}", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
+    except OSError as e:
+        if e.errno not in NO_SPACE_ERRNOS:
+            raise
+        print(f"error: {describe_no_space(e)}: finished outputs are intact{_hint()}", file=sys.stderr)
+        return EXIT_FAULT
     except ValueError as e:  # SchemaError is a ValueError
         print(f"error: {e}", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
+    finally:
+        clear_output_roots()
+        _RESUME_HINT.clear()
     return 0

@@ -1,0 +1,107 @@
+"""Strict JSON reading for files a user hands us (captures, rigs, datasets, runs).
+
+Python's ``json`` accepts things that are almost never what the author meant: a key given twice
+(the last one silently wins), ``NaN``/``Infinity`` literals, nesting deep enough to overflow the
+parser's recursion, any file size. :func:`read_json` refuses each of them with a
+:class:`~gsavatar.data_schema.errors.SchemaError` naming the file (and the key or line). The type
+helpers refuse ``true``/``false`` where a number is expected (in Python ``bool`` is an ``int``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import stat
+from pathlib import Path
+
+from gsavatar.data_schema.errors import SchemaError
+
+MAX_JSON_BYTES = 64 << 20
+"""Largest JSON file read (64 MiB: a calibration of thousands of cameras is a few MB)."""
+MAX_JSON_DEPTH = 64
+"""Deepest nesting of objects/arrays accepted (ours need < 10)."""
+
+
+class _DuplicateKey(ValueError):
+    pass
+
+
+def _no_duplicates(pairs: list[tuple[str, object]]) -> dict:
+    out: dict = {}
+    for k, v in pairs:
+        if k in out:
+            raise _DuplicateKey(k)
+        out[k] = v
+    return out
+
+
+def _bad_constant(name: str):
+    raise ValueError(f"non-standard JSON constant {name}")
+
+
+def _depth(s: str) -> int:
+    """Maximum bracket nesting of a JSON text, outside strings (linear scan, no recursion)."""
+    depth = best = 0
+    in_str = esc = False
+    for ch in s:
+        if in_str:
+            if esc:
+                esc = False
+            elif ch == "\\":
+                esc = True
+            elif ch == '"':
+                in_str = False
+        elif ch == '"':
+            in_str = True
+        elif ch in "[{":
+            depth += 1
+            best = max(best, depth)
+        elif ch in "]}":
+            depth -= 1
+    return best
+
+
+def parse_json_text(text: str, file: str | Path):
+    """Parse JSON text strictly (see module docstring); ``file`` names the source in errors."""
+    if _depth(text) > MAX_JSON_DEPTH:
+        raise SchemaError(file, "", f"JSON nested deeper than {MAX_JSON_DEPTH} levels")
+    try:
+        return json.loads(text, object_pairs_hook=_no_duplicates, parse_constant=_bad_constant)
+    except _DuplicateKey as e:
+        raise SchemaError(file, str(e), "key given twice (JSON keys must be unique)") from None
+    except json.JSONDecodeError as e:
+        raise SchemaError(file, f"line {e.lineno}", f"invalid JSON: {e.msg}") from None
+    except ValueError as e:  # NaN / Infinity literals
+        raise SchemaError(file, "", f"invalid JSON: {e}") from None
+    except RecursionError:
+        raise SchemaError(file, "", "JSON nested too deeply") from None
+
+
+def read_json(path: str | Path, max_bytes: int = MAX_JSON_BYTES):
+    """Read and strictly parse a JSON file. SchemaError names the file for a missing file, a
+    non-regular file (FIFO, device, directory), a file over ``max_bytes``, non-UTF-8 bytes, invalid
+    JSON (with the line), a duplicate key (with the key), NaN/Infinity, or nesting over MAX_JSON_DEPTH."""
+    path = Path(path)
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        raise SchemaError(path, "", "file not found") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise SchemaError(path, "", "not a regular file")
+    if st.st_size > max_bytes:
+        raise SchemaError(path, "", f"{st.st_size} bytes, more than the {max_bytes} a JSON file may have here")
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        raise SchemaError(path, "", "not a UTF-8 JSON text file") from None
+    return parse_json_text(text, path)
+
+
+def is_int(v) -> bool:
+    """A JSON integer (``true``/``false`` are not)."""
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def is_number(v) -> bool:
+    """A finite JSON number (``true``/``false`` are not)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
