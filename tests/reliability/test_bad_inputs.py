@@ -383,7 +383,7 @@ def _(env):
     return drive(env, _inf_motion(env))
 
 
-@case("non-positive motion fps", "avatar-drive", "walk.npz", "fps must be positive")
+@case("non-positive motion fps", "avatar-drive", "walk.npz", "fps", "-30", "outside the plausible range")
 def _(env):
     return drive(env, _npz(env, fps=np.float32(-30.0)))
 

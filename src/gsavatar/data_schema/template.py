@@ -80,7 +80,7 @@ def load_template(where: str | Path, num_joints: int) -> Template:
     sw = where / "skin_weights.npz"
     from gsavatar.utils.io import read_npz
 
-    z = read_npz(sw)
+    z = read_npz(sw, keys=("indices", "weights"))
     if "indices" not in z or "weights" not in z:
         raise SchemaError(sw, "indices/weights", f"missing; has {sorted(z)}")
     for k, kinds in (("indices", "iu"), ("weights", "iuf")):

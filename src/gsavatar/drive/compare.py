@@ -20,11 +20,12 @@ import cv2
 import numpy as np
 import torch
 
+from gsavatar.data_schema import SchemaError
 from gsavatar.drive.driver import DriveConfig, Driver, motion_inputs
 from gsavatar.drive.metrics import load_ground_truth
 from gsavatar.drive.motion import load_driving_motion
 from gsavatar.metrics.image import psnr
-from gsavatar.utils.io import atomic_write_json, write_image
+from gsavatar.utils.io import atomic_write_json, read_npz, write_image
 
 
 @dataclass
@@ -66,11 +67,12 @@ def compare(args: CompareArgs) -> dict:
             raise ValueError(f"--drive must be label=DIR, got {spec!r}")
         path = Path(d) / "latents.npz"
         if not path.exists():
-            from gsavatar.data_schema import SchemaError
-
             raise SchemaError(path, "", "missing: run avatar-drive with --out there first")
-        with np.load(path, allow_pickle=False) as z:
-            sources[label] = np.asarray(z["latents"], np.float32)  # [T, A, L]
+        z = read_npz(path, keys=("latents",))
+        if "latents" not in z or z["latents"].ndim != 3 or z["latents"].dtype.kind not in "iuf":
+            got = f"{z['latents'].dtype} array of shape {list(z['latents'].shape)}" if "latents" in z else "nothing"
+            raise SchemaError(path, "latents", f"expected a real [T, A, L] array, got {got}")
+        sources[label] = np.asarray(z["latents"], np.float32)  # [T, A, L]
     net, scene, tcfg, _ = load_run(args.run)
     if not net.avatar.latent_in:
         raise ValueError(f"{args.run}: the avatar has no appearance latents to compare")

@@ -21,13 +21,16 @@ Interpolation is rotation-aware:
   linear per parameter (a slerped rotation generally leaves their 1-2 DOF manifold);
 - root translation and face embedding: linear.
 
+Frame rates must lie in [MIN_FPS, MAX_FPS] and a resampled motion may have at most
+MAX_RESAMPLED_FRAMES frames (:mod:`gsavatar.data_schema.limits`): a ``Frame Time`` of 1e9 s or an
+``fps`` of 1e-7 would otherwise ask for ~1e10 output frames.
+
 Errors name the file and field (:class:`~gsavatar.data_schema.SchemaError`) or the
 argument (``ValueError``).
 """
 
 from __future__ import annotations
 
-import json
 import math
 import warnings
 from pathlib import Path
@@ -37,8 +40,13 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gsavatar.data_schema import Capture, Rig, SchemaError, load_capture
+from gsavatar.data_schema.limits import MAX_RESAMPLED_FRAMES, check_fps, check_resampled_frames, fps_problem
+from gsavatar.utils.io import read_npz
+from gsavatar.utils.jsonio import read_json
 
 _AXES = {(1.0, 0.0, 0.0): "X", (0.0, 1.0, 0.0): "Y", (0.0, 0.0, 1.0): "Z"}
+MOTION_KEYS = ("pose", "root_rotation", "root_translation", "face", "fps")
+"""Arrays read from a driving ``motion.npz``; any others are never decompressed."""
 
 
 class GroundTruth(NamedTuple):
@@ -89,6 +97,9 @@ def resample_times(n_in: int, fps_in: float, fps_out: float) -> ResampleTimes:
         raise ValueError(f"fps_in and fps_out must be positive, got {fps_in}, {fps_out}")
     ratio = fps_in / fps_out
     n_out = int(math.floor((n_in - 1) / ratio + 1e-6)) + 1
+    if n_out > MAX_RESAMPLED_FRAMES:
+        raise ValueError(f"resampling {n_in} frames from {fps_in:g} to {fps_out:g} fps makes {n_out} frames, "
+                         f"more than the {MAX_RESAMPLED_FRAMES} allowed")
     s = np.arange(n_out, dtype=np.float64) * ratio
     i0 = np.floor(s + 1e-6).astype(np.int64)
     a = s - i0
@@ -241,22 +252,27 @@ def validate_arrays(path: Path, arrays: dict[str, np.ndarray | None], pose_dim: 
         raise SchemaError(path, "pose", "no frames")
 
 
-def _npz_fps(path: Path, z: dict[str, np.ndarray], fps: float | None) -> float:
+def _npz_fps(path: Path, z: dict[str, np.ndarray], fps: float | None) -> tuple[float, Path, str]:
+    """Frame rate of a motion npz and where it came from: (fps, file, field), checked against the
+    plausible range (the ``fps`` argument: ValueError; a file: SchemaError naming it)."""
     if fps is not None:
-        return float(fps)
+        problem = fps_problem(fps)
+        if problem is not None:
+            raise ValueError(f"fps (frame rate of {path.name}) must be a plausible frame rate: {problem}")
+        return float(fps), path, "fps"
     if "fps" in z:
         a = np.asarray(z["fps"]).reshape(-1)
         if a.size != 1 or a.dtype.kind not in "iuf":
             raise SchemaError(path, "fps", f"expected one number, got {a.size} values of dtype {a.dtype}")
-        return float(a[0])
+        return check_fps(float(a[0]), path, "fps"), path, "fps"
     for side in (path.with_suffix(".json"), path.parent / "capture.json"):
         if side.exists():
-            try:
-                v = json.loads(side.read_text()).get("fps")
-            except (json.JSONDecodeError, AttributeError):
-                raise SchemaError(side, "fps", "cannot read the frame rate (invalid JSON object)") from None
+            obj = read_json(side)
+            if not isinstance(obj, dict):
+                raise SchemaError(side, "", f"expected a JSON object with an 'fps' field, got {type(obj).__name__}")
+            v = obj.get("fps")
             if v is not None:
-                return float(v)
+                return check_fps(v, side, "fps"), side, "fps"
     raise ValueError(f"{path}: frame rate unknown: pass fps=, store an 'fps' array in the npz, or write "
                      f"{path.with_suffix('.json').name} with {{\"fps\": ...}}")
 
@@ -270,10 +286,10 @@ def _select(n: int, start: int, count: int | None, what: Path) -> slice:
 
 
 def _finish(pose, rr, rt, face, fps_in: float, rig: Rig, target_fps: float | None, source: Path,
-            gt_capture: Capture | None = None, gt_frames: list[int] | None = None) -> DrivingMotion:
+            gt_capture: Capture | None = None, gt_frames: list[int] | None = None,
+            fps_from: tuple[Path, str] | None = None) -> DrivingMotion:
+    """``fps_from``: (file, field) the source frame rate was read from, named when resampling is refused."""
     fps_out = fps_in if target_fps is None else float(target_fps)
-    if fps_out <= 0 or not math.isfinite(fps_out):
-        raise ValueError(f"target_fps must be positive, got {target_fps}")
     gt = None
     if abs(fps_out - fps_in) < 1e-9 * fps_in:
         pose, rr, rt = (np.asarray(x, np.float32) for x in (pose, rr, rt))
@@ -281,6 +297,7 @@ def _finish(pose, rr, rt, face, fps_in: float, rig: Rig, target_fps: float | Non
         if gt_capture is not None:
             gt = GroundTruth(gt_capture, list(gt_frames))
     else:
+        check_resampled_frames(len(pose), fps_in, fps_out, *(fps_from or (source, "fps")))
         pose, rr, rt, face, t = resample_motion(pose, rr, rt, face, rig, fps_in, fps_out)
         if gt_capture is not None and not t.alpha.any():  # e.g. 60 -> 30: every frame is a source frame
             gt = GroundTruth(gt_capture, [gt_frames[i] for i in t.i0])
@@ -302,6 +319,8 @@ def load_driving_motion(source: str | Path, rig: Rig, target_fps: float | None =
     src = Path(source)
     if not src.exists():
         raise SchemaError(src, "", "driving motion not found (expected a motion.npz, capture directory or .bvh file)")
+    if target_fps is not None and fps_problem(target_fps) is not None:
+        raise ValueError(f"target_fps must be a plausible frame rate: {fps_problem(target_fps)}")
     if split is not None and not src.is_dir():
         raise ValueError(f"split={split!r} needs a capture directory as source, got {src}")
     if src.is_dir():
@@ -319,10 +338,11 @@ def load_driving_motion(source: str | Path, rig: Rig, target_fps: float | None =
             if frames != list(range(frames[0], frames[-1] + 1)):
                 raise ValueError(f"split {split!r} of {src} is not a run of consecutive frames; use start/count")
         frames = frames[_select(len(frames), start, count, src)]
+        fps_in = check_fps(cap.fps, src / "capture.json", "fps")
         m = cap.motion
         face = None if m.face is None else m.face[frames]
-        return _finish(m.pose[frames], m.root_rotation[frames], m.root_translation[frames], face, cap.fps, rig,
-                       target_fps, src, cap, frames)
+        return _finish(m.pose[frames], m.root_rotation[frames], m.root_translation[frames], face, fps_in, rig,
+                       target_fps, src, cap, frames, fps_from=(src / "capture.json", "fps"))
     if src.suffix.lower() == ".bvh":
         from gsavatar.synth.retarget import motion_from_bvh_file
 
@@ -331,16 +351,12 @@ def load_driving_motion(source: str | Path, rig: Rig, target_fps: float | None =
                         rig.pose_dim)
         return DrivingMotion(m.pose, m.root_rotation, m.root_translation, None, float(m.fps), None, str(src), float(m.fps))
     if src.suffix.lower() == ".npz":
-        from gsavatar.utils.io import read_npz
-
-        z = read_npz(src)
-        arrays = {k: z.get(k) for k in ("pose", "root_rotation", "root_translation", "face")}
+        z = read_npz(src, keys=MOTION_KEYS)
+        arrays = {k: z.get(k) for k in MOTION_KEYS if k != "fps"}
         validate_arrays(src, arrays, rig.pose_dim)
-        fps_in = _npz_fps(src, z, fps)
-        if not (fps_in > 0 and math.isfinite(fps_in)):
-            raise ValueError(f"{src}: fps must be positive, got {fps_in}")
+        fps_in, *fps_from = _npz_fps(src, z, fps)
         sl = _select(arrays["pose"].shape[0], start, count, src)
         face = None if arrays["face"] is None else arrays["face"][sl]
         return _finish(arrays["pose"][sl], arrays["root_rotation"][sl], arrays["root_translation"][sl], face, fps_in,
-                       rig, target_fps, src)
+                       rig, target_fps, src, fps_from=tuple(fps_from))
     raise ValueError(f"source must be a .npz, .bvh or capture directory, got {src}")

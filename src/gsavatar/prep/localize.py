@@ -262,7 +262,8 @@ class LocalizationMasks:
         from gsavatar.utils.io import load_versioned_npz
 
         path = Path(path)
-        hdr, arrays = load_versioned_npz(path, MASKS_FORMAT, MASKS_VERSION, what="gsavatar localization")
+        hdr, arrays = load_versioned_npz(path, MASKS_FORMAT, MASKS_VERSION, what="gsavatar localization",
+                                         keys=("pose", "face"))
         for k in ("pose", "face"):
             if k not in arrays:
                 raise SchemaError(path, k, "missing")

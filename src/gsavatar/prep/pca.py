@@ -179,7 +179,8 @@ class PosePCA:
         from gsavatar.utils.io import load_versioned_npz
 
         path = Path(path)
-        hdr, arrays = load_versioned_npz(path, PCA_FORMAT, PCA_VERSION, what="gsavatar pose PCA")
+        hdr, arrays = load_versioned_npz(path, PCA_FORMAT, PCA_VERSION, what="gsavatar pose PCA",
+                                         keys=("mean", "basis", "sigma", "component_group", "slot_group"))
         for key in ("mean", "basis", "sigma", "component_group", "slot_group"):
             if key not in arrays:
                 raise SchemaError(path, key, "missing")

@@ -155,7 +155,8 @@ class Hierarchy:
         from gsavatar.utils.io import load_versioned_npz
 
         path = Path(path)
-        hdr, arrays = load_versioned_npz(path, HIERARCHY_FORMAT, HIERARCHY_VERSION, what="gsavatar hierarchy")
+        hdr, arrays = load_versioned_npz(path, HIERARCHY_FORMAT, HIERARCHY_VERSION, what="gsavatar hierarchy",
+                                         keys=(*(f"{lvl}.{f}" for lvl in _LEVELS for f in _POINT_FIELDS), *_TABLES))
         levels = {}
         for lvl in _LEVELS:
             vals = []

@@ -22,6 +22,7 @@ from typing import NamedTuple
 import numpy as np
 
 from gsavatar.data_schema.template import Template
+from gsavatar.utils.io import read_npz
 
 _CHUNK = 1 << 22  # candidate (triangle, texel) pairs per vectorised batch
 _INSIDE_EPS = 1e-7  # barycentric tolerance: texel centres on an edge count as inside
@@ -99,12 +100,12 @@ def ensure_uvs(template: Template, cache_dir: str | Path | None = None, resoluti
         path = Path(cache_dir) / f"uv_atlas_{_mesh_hash(template.vertices, template.faces)}_{int(resolution)}.npz"
         if path.exists():
             try:
-                with np.load(path) as z:
-                    uvs = np.asarray(z["uvs"], dtype=np.float32)
-                    face_uvs = np.asarray(z["face_uvs"], dtype=np.int64)
+                z = read_npz(path, keys=("uvs", "face_uvs"))
+                uvs = np.asarray(z["uvs"], dtype=np.float32)
+                face_uvs = np.asarray(z["face_uvs"], dtype=np.int64)
                 if face_uvs.shape == template.faces.shape and face_uvs.min() >= 0 and face_uvs.max() < len(uvs):
                     return dataclasses.replace(template, uvs=uvs, face_uvs=face_uvs, face_uv_mask=None)
-            except (OSError, ValueError, KeyError):
+            except (OSError, ValueError, KeyError):  # SchemaError is a ValueError
                 pass  # corrupt/stale cache: recompute and overwrite
     uvs, face_uvs = unwrap_xatlas(template.vertices, template.faces, resolution=resolution)
     if path is not None:

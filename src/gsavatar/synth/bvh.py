@@ -34,11 +34,16 @@ Format (what is accepted)::
 
 Malformed files raise :class:`~gsavatar.data_schema.errors.SchemaError` naming the
 file and the line: truncated MOTION sections, rows with the wrong number of values,
-non-numeric or NaN/Inf values, bad channel names/counts, unbalanced braces.
+non-numeric or NaN/Inf values, bad channel names/counts, unbalanced braces, no frames
+(``Frames: 0``), a ``Frame Time`` outside [1/MAX_FPS, 1/MIN_FPS] s (the plausible frame rates of
+:mod:`gsavatar.data_schema.limits`: 1e9 s per frame made resampling ask for TiB), joints nested
+deeper than MAX_DEPTH, files over MAX_BVH_BYTES or that are not regular files (a FIFO would block).
+Nothing is allocated from a declared count before the rows that back it are found.
 """
 
 from __future__ import annotations
 
+import stat
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,10 +51,15 @@ from pathlib import Path
 import numpy as np
 
 from gsavatar.data_schema.errors import SchemaError
+from gsavatar.data_schema.limits import MAX_FPS, MIN_FPS
 
 POSITION_CHANNELS = ("Xposition", "Yposition", "Zposition")
 ROTATION_CHANNELS = ("Xrotation", "Yrotation", "Zrotation")
 _ALL_CHANNELS = POSITION_CHANNELS + ROTATION_CHANNELS
+MAX_DEPTH = 256
+"""Deepest joint nesting accepted (human skeletons: < 30; the parser recurses once per level)."""
+MAX_BVH_BYTES = 1 << 30
+"""Largest BVH file read (1 GiB; CMU clips are < 10 MB, hours of 120 Hz mocap a few hundred MB)."""
 
 
 @dataclass
@@ -155,8 +165,10 @@ class _Tokens:
         return v
 
 
-def _parse_joint(tk: _Tokens, name: str, parent: int, out: dict) -> None:
+def _parse_joint(tk: _Tokens, name: str, parent: int, out: dict, depth: int = 0) -> None:
     """Parse ``{ OFFSET .. CHANNELS .. (JOINT|End Site)* }`` of one joint (name already read)."""
+    if depth > MAX_DEPTH:
+        raise SchemaError(tk.path, f"line {tk.line()}", f"JOINT {name!r}: joints nested deeper than {MAX_DEPTH} levels")
     idx = len(out["names"])
     if name in out["names"]:
         raise SchemaError(tk.path, f"line {tk.line()}", f"duplicate joint name {name!r}")
@@ -197,7 +209,7 @@ def _parse_joint(tk: _Tokens, name: str, parent: int, out: dict) -> None:
             out["channels"][idx] = chans
         elif t == "JOINT":
             child = tk.next("joint name")
-            _parse_joint(tk, child, idx, out)
+            _parse_joint(tk, child, idx, out, depth + 1)
         elif t == "End":
             tk.expect("Site")
             tk.expect("{")
@@ -215,9 +227,14 @@ def read_bvh(path: str | Path) -> BvhMotion:
     """Parse a BVH file. Raises :class:`SchemaError` (file, ``line N``) on malformed input."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8", errors="replace")
+        st = path.stat()
     except FileNotFoundError:
         raise SchemaError(path, "", "file not found") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise SchemaError(path, "", "not a regular file")
+    if st.st_size > MAX_BVH_BYTES:
+        raise SchemaError(path, "", f"{st.st_size} bytes, more than the {MAX_BVH_BYTES} a BVH file may have")
+    text = path.read_text(encoding="utf-8", errors="replace")
     lines = text.splitlines()
     motion_line = next((i for i, l in enumerate(lines) if l.strip().upper() == "MOTION"), None)
     if motion_line is None:
@@ -255,7 +272,9 @@ def read_bvh(path: str | Path) -> BvhMotion:
     except ValueError:
         raise SchemaError(path, f"line {i + 1}", f"Frames: expected an integer, got {fs!r}") from None
     if F < 0:
-        raise SchemaError(path, f"line {i + 1}", f"Frames: must be >= 0, got {F}")
+        raise SchemaError(path, f"line {i + 1}", f"Frames: must be >= 1, got {F}")
+    if F == 0:
+        raise SchemaError(path, f"line {i + 1}", "Frames: no motion frames (Frames: 0)")
     i += 1
     ft = header(i, "Frame Time:")
     try:
@@ -264,7 +283,14 @@ def read_bvh(path: str | Path) -> BvhMotion:
         raise SchemaError(path, f"line {i + 1}", f"Frame Time: expected a number, got {ft!r}") from None
     if not np.isfinite(frame_time) or frame_time <= 0:
         raise SchemaError(path, f"line {i + 1}", f"Frame Time: must be > 0, got {ft}")
+    if not 1.0 / MAX_FPS <= frame_time <= 1.0 / MIN_FPS:
+        raise SchemaError(path, f"line {i + 1}", f"Frame Time: {ft} s per frame ({1.0 / frame_time:g} fps) is outside "
+                                                 f"[{1.0 / MAX_FPS:g}, {1.0 / MIN_FPS:g}] s ({MIN_FPS:g}..{MAX_FPS:g} fps)")
     i += 1
+    rows = sum(1 for ln in range(i, len(lines)) if lines[ln].strip())
+    if rows < F:  # before allocating [F, C]: 'Frames: 10**12' with two rows must not ask for terabytes
+        raise SchemaError(path, f"line {len(lines)}",
+                          f"MOTION truncated: 'Frames: {F}' declared but only {rows} frame rows found")
 
     # --- frame rows ----------------------------------------------------------------
     motion = np.empty((F, C), dtype=np.float64)
@@ -291,8 +317,6 @@ def read_bvh(path: str | Path) -> BvhMotion:
             raise SchemaError(path, f"line {ln + 1}", f"frame {f}: value {k} is {s[k]} (NaN/Inf)")
         motion[f] = row
         f += 1
-    if f < F:
-        raise SchemaError(path, f"line {len(lines)}", f"MOTION truncated: 'Frames: {F}' declared but only {f} frame rows found")
 
     return BvhMotion(
         names=out["names"],

@@ -34,6 +34,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from gsavatar.data_schema.limits import check_resampled_frames
 from gsavatar.data_schema.rig import Rig
 from gsavatar.synth.bvh import BvhMotion, bvh_global_transforms, bvh_rest_positions, read_bvh
 
@@ -277,6 +278,7 @@ def retarget_bvh(
         raise ValueError(f"fps_out must be > 0, got {fps_out}")
     if fps_out is not None and abs(fps - fps_in) > 1e-9 and F > 1:
         t_src = np.arange(F) / fps_in
+        check_resampled_frames(F, fps_in, fps, bvh.path or "BVH", "MOTION")
         n_out = int(math.floor(t_src[-1] * fps + 1e-6)) + 1
         t_out = np.minimum(np.arange(n_out) / fps, t_src[-1])
         # exact source frames where output times coincide (e.g. 120 -> 30 fps)
@@ -347,6 +349,8 @@ def motion_from_bvh_file(
         fps_src = _snap_fps(bvh.fps)
         ratio = fps_src / (fps_src if fps_out is None else float(fps_out))
         stop = min(bvh.num_frames, start + int(math.ceil((count - 1) * ratio - 1e-6)) + 1)
+    if fps_out is not None:  # refused here, naming the file, before the retargeting work
+        check_resampled_frames(stop - start, _snap_fps(bvh.fps), float(fps_out), path, "MOTION")
     m = retarget_bvh(bvh, rig, None, fps_out, slice(start, stop), **kwargs)
     if count is not None and len(m.pose) > count:
         m = RetargetedMotion(m.pose[:count], m.root_rotation[:count], m.root_translation[:count], m.fps)

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import dataclasses
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from gsavatar.data_schema.errors import SchemaError
 from gsavatar.models.config import PresetName, VariantName
 from gsavatar.train.losses import LossWeights
+from gsavatar.utils.jsonio import is_int, is_number
 
 
 @dataclass
@@ -120,3 +123,39 @@ def resolve(cfg: TrainConfig) -> TrainConfig:
 def to_json(cfg: TrainConfig) -> dict:
     d = dataclasses.asdict(cfg)
     return {k: (str(v) if isinstance(v, Path) else v) for k, v in d.items()}
+
+
+def from_json(d: dict, file: str | Path, prefix: str = "train") -> TrainConfig:
+    """Inverse of :func:`to_json` for a config read back from a run's ``config.json``: every field of
+    TrainConfig it holds is type-checked against the field's annotation (``true`` is not an int, a
+    Literal must be one of its choices); unknown keys are ignored and ``losses`` keeps its default.
+    Raises SchemaError(file, ``prefix.field``)."""
+    if not isinstance(d, dict):
+        raise SchemaError(file, prefix, f"expected an object, got {type(d).__name__}")
+    hints = typing.get_type_hints(TrainConfig)
+    kwargs: dict = {}
+    for f in dataclasses.fields(TrainConfig):
+        if f.name == "losses" or f.name not in d:
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                raise SchemaError(file, f"{prefix}.{f.name}", "missing")
+            continue
+        kwargs[f.name] = _typed(d[f.name], hints[f.name], file, f"{prefix}.{f.name}")
+    return TrainConfig(**kwargs)
+
+
+def _typed(v, hint, file: str | Path, field: str):
+    """``v`` converted to ``hint`` (Path, Path | None, int, float, bool, str, Literal); SchemaError otherwise."""
+    args = typing.get_args(hint)
+    if typing.get_origin(hint) is Literal:
+        if v not in args or isinstance(v, bool):
+            raise SchemaError(file, field, f"expected one of {list(args)}, got {v!r}")
+        return v
+    if type(None) in args:  # Optional[...]
+        return None if v is None else _typed(v, next(a for a in args if a is not type(None)), file, field)
+    ok = {Path: lambda x: isinstance(x, str) and x != "", int: is_int, float: is_number,
+          bool: lambda x: isinstance(x, bool), str: lambda x: isinstance(x, str)}.get(hint)
+    if ok is None:
+        raise TypeError(f"{field}: no JSON reader for {hint}")
+    if not ok(v):
+        raise SchemaError(file, field, f"expected {getattr(hint, '__name__', hint)}, got {v!r}")
+    return Path(v) if hint is Path else (float(v) if hint is float else v)

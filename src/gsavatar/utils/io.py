@@ -8,17 +8,26 @@ the final name.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
+import math
 import os
+import stat
 import tempfile
 import zipfile
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
 from gsavatar.data_schema.errors import SchemaError
+from gsavatar.utils.jsonio import is_int, parse_json_text
+
+
+NO_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+"""OS errors that mean the disk (or quota, or file-size limit) is full."""
 
 
 @contextlib.contextmanager
@@ -28,7 +37,10 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     ``suffix`` defaults to the final suffix so writers that pick a format from the
     extension (OpenImageIO, OpenCV, numpy) still work.
     """
+    from gsavatar.utils.paths import check_output
+
     path = Path(path)
+    check_output(path)  # refused before any folder is made when the path escapes the command's --out
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix if suffix is not None else path.suffix, dir=path.parent)
     os.close(fd)
@@ -40,6 +52,10 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     try:
         yield tmp_path
         os.replace(tmp_path, path)
+    except OSError as e:
+        if e.errno in NO_SPACE_ERRNOS and not e.filename:  # a write() that failed names no file: name the target
+            raise OSError(e.errno, os.strerror(e.errno), str(path)) from None
+        raise
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
@@ -62,8 +78,15 @@ def atomic_write_json(path: str | Path, obj) -> None:
 
 
 def atomic_save_npz(path: str | Path, **arrays: np.ndarray) -> None:
+    """``np.savez`` layout (uncompressed ``<key>.npy`` members, no pickles) with fixed member timestamps, so
+    the same arrays always give the same bytes (a recomputed stage keeps its checksum and the dataset's id)."""
     with atomic_path(path, suffix=".npz") as tmp:
-        np.savez(tmp, **arrays)
+        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
+            for key, value in arrays.items():
+                info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+                info.external_attr = 0o644 << 16
+                with zf.open(info, "w", force_zip64=True) as f:
+                    np.lib.format.write_array(f, np.asanyarray(value), allow_pickle=False)
 
 
 def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
@@ -74,33 +97,57 @@ def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
+MAX_IMAGE_PIXELS = 1 << 28
+"""Largest image read (268M pixels, e.g. 16k x 16k); OpenCV refuses above 2^30 pixels by itself."""
+
+
+def check_regular_file(path: str | Path, what: str = "file") -> Path:
+    """``path`` if it names a regular file. SchemaError naming it when it is missing or is a FIFO, device,
+    socket or directory: opening a FIFO blocks forever (cv2.imread, OpenImageIO, np.load would hang)."""
+    path = Path(path)
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        raise SchemaError(path, "", f"{what} not found") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise SchemaError(path, "", "not a regular file" + ("" if what == "file" else f" ({what} expected)"))
+    return path
+
+
 def read_image(path: str | Path) -> np.ndarray:
     """Read an image as float32 RGB in [0, 1] (EXR: linear values as stored).  # [H, W, 3]
 
-    Raises :class:`SchemaError` naming the file when it is missing or cannot be decoded.
+    Raises :class:`SchemaError` naming the file when it is missing, not a regular file (checked before
+    opening: a FIFO would block), larger than MAX_IMAGE_PIXELS, cannot be decoded, or holds NaN/Inf
+    pixels (float EXR/TIFF; they would reach training as ``loss nan``).
     """
-    path = Path(path)
-    if not path.exists():
-        raise SchemaError(path, "", "image file not found")
+    path = check_regular_file(path, "image file")
     if path.suffix.lower() == ".exr":
         import OpenImageIO as oiio
 
         buf = oiio.ImageBuf(str(path))
+        spec = buf.spec()
         if buf.has_error:
             raise SchemaError(path, "", f"cannot decode EXR: {buf.geterror()}")
+        if spec.width * spec.height > MAX_IMAGE_PIXELS:
+            raise SchemaError(path, "size", f"{spec.width}x{spec.height} pixels, more than the {MAX_IMAGE_PIXELS} "
+                                            "an image may have")
         arr = buf.get_pixels(oiio.FLOAT)
         if arr is None or arr.size == 0:
-            raise SchemaError(path, "", "cannot decode EXR")
+            raise SchemaError(path, "", f"cannot decode EXR: {buf.geterror()}")
         arr = np.asarray(arr, dtype=np.float32)
         if arr.ndim == 2:
             arr = arr[..., None]
     else:
         import cv2
 
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        # JPEG: decode like every viewer does, with the EXIF orientation applied (IMREAD_UNCHANGED ignores
+        # it, and a phone's portrait photo would be read sideways); check_images compares the upright size.
+        jpeg = path.suffix.lower() in (".jpg", ".jpeg")
+        raw = cv2.imread(str(path), cv2.IMREAD_COLOR if jpeg else cv2.IMREAD_UNCHANGED)
         if raw is None:
             raise SchemaError(path, "", "cannot decode image (truncated or not an image)")
-        scale = 65535.0 if raw.dtype == np.uint16 else 255.0
+        scale = 65535.0 if raw.dtype == np.uint16 else (1.0 if raw.dtype.kind == "f" else 255.0)
         arr = raw.astype(np.float32) / scale
         if arr.ndim == 2:
             arr = arr[..., None]
@@ -108,23 +155,58 @@ def read_image(path: str | Path) -> np.ndarray:
             arr = arr[..., [2, 1, 0]]  # BGR -> RGB, drop alpha
     if arr.shape[2] == 1:
         arr = np.repeat(arr, 3, axis=2)
-    return np.ascontiguousarray(arr[..., :3])
+    arr = np.ascontiguousarray(arr[..., :3])
+    bad = ~np.isfinite(arr).all(axis=-1)  # [H, W]
+    if bad.any():
+        y, x = np.argwhere(bad)[0]
+        raise SchemaError(path, "", f"{int(bad.sum())} non-finite pixels (NaN/Inf; first at x={x}, y={y})")
+    return arr
+
+
+MASK_ENCODINGS = ("single-channel 0..255 (or 0..65535), single-channel 0/1, grey RGB (equal channels), "
+                  "single-colour RGB (e.g. red 255,0,0 on black), or RGBA / grey+alpha with the mask in a varying alpha")
+
+
+def decode_mask(raw: np.ndarray, path: str | Path = "mask") -> np.ndarray:
+    """A decoded mask image (OpenCV channel order) as float32 foreground in [0, 1].  # [H, W]
+
+    Accepted encodings (:data:`MASK_ENCODINGS`, docs/data_schema.md "Masks"): the mask channel is the
+    alpha channel when the image has one that varies, else the grey value, else the one colour the
+    foreground is painted in. An integer channel whose maximum is 1 is a 0/1 mask. Anything else (a
+    photo, channels painted in different colours, float data) is refused with SchemaError naming ``path``.
+    """
+    if raw.dtype not in (np.uint8, np.uint16):
+        raise SchemaError(path, "", f"mask pixels must be 8- or 16-bit integers, got {raw.dtype}; masks are {MASK_ENCODINGS}")
+    if raw.ndim == 3 and raw.shape[2] == 1:
+        raw = raw[..., 0]
+    if raw.ndim == 3:
+        if raw.shape[2] in (2, 4) and raw[..., -1].min() != raw[..., -1].max():
+            raw = raw[..., -1]  # varying alpha: the mask is the alpha channel
+        else:
+            col = raw[..., : 1 if raw.shape[2] == 2 else 3]
+            m = col.max(axis=2)
+            painted = [c for c in range(col.shape[2]) if col[..., c].any()]
+            if not all(np.array_equal(col[..., c], m) for c in painted):
+                raise SchemaError(path, "", f"colour image, not a mask (its channels differ); masks are {MASK_ENCODINGS}")
+            raw = m
+    if raw.ndim != 2:
+        raise SchemaError(path, "", f"mask of shape {list(raw.shape)}; masks are {MASK_ENCODINGS}")
+    peak = int(raw.max()) if raw.size else 0
+    scale = 1.0 if peak == 1 else (65535.0 if raw.dtype == np.uint16 else 255.0)
+    return raw.astype(np.float32) / scale
 
 
 def read_mask(path: str | Path) -> np.ndarray:
-    """Read a foreground mask (0..255 PNG) as float32 in [0, 1].  # [H, W]"""
+    """Read a foreground mask as float32 in [0, 1] (encodings: :func:`decode_mask`).  # [H, W]
+
+    SchemaError naming the file when it is missing, not a regular file, undecodable or not a mask."""
     import cv2
 
-    path = Path(path)
-    if not path.exists():
-        raise SchemaError(path, "", "mask file not found")
+    path = check_regular_file(path, "mask file")
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise SchemaError(path, "", "cannot decode mask (truncated or not an image)")
-    if raw.ndim == 3:
-        raw = raw[..., 0]
-    scale = 65535.0 if raw.dtype == np.uint16 else 255.0
-    return raw.astype(np.float32) / scale
+    return decode_mask(raw, path)
 
 
 def write_image(path: str | Path, img: np.ndarray) -> None:
@@ -158,42 +240,90 @@ def write_image(path: str | Path, img: np.ndarray) -> None:
     atomic_write_bytes(path, enc.tobytes())
 
 
-NPZ_READ_ERRORS = (OSError, ValueError, EOFError, zipfile.BadZipFile)
+NPZ_READ_ERRORS = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)
 """What ``np.load`` and reading its arrays raise for a truncated, corrupt or pickled npz."""
+MAX_NPZ_ARRAY_BYTES = 2 << 30
+"""Largest array read from an npz (uncompressed): 2 GiB, 20x our largest (a paper-preset hierarchy or
+localization is ~100 MB). Deflate shrinks zeros ~1000x, so a 2 MB file can hold a 2 GB array."""
 
 
-def read_npz(path: str | Path) -> dict[str, np.ndarray]:
-    """Every array of an npz (no pickles). SchemaError names the file when it is missing, truncated,
-    corrupt (bad zip, bad CRC) or holds object arrays."""
-    path = Path(path)
-    if not path.exists():
-        raise SchemaError(path, "", "file not found")
+def _npy_header(f) -> tuple[tuple[int, ...], np.dtype]:
+    """(shape, dtype) from the header of an .npy stream, reading nothing past the header."""
+    major, _ = np.lib.format.read_magic(f)
+    read = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
+    shape, _, dtype = read(f)
+    return shape, dtype
+
+
+def read_npz(path: str | Path, keys: tuple[str, ...] | list[str] | None = None,
+             max_bytes: int = MAX_NPZ_ARRAY_BYTES) -> dict[str, np.ndarray]:
+    """The arrays of an npz (no pickles): all of them, or only those of ``keys`` that it holds (the others
+    are never decompressed; callers check for missing keys with their own field names).
+
+    Each array's size is checked before it is decompressed: its zip member's declared uncompressed size
+    must be at most ``max_bytes``, and the shape in its .npy header must fit in that member. SchemaError
+    names the file (and the key) when it is missing, not a regular file, not an npz archive (e.g. a single
+    .npy array saved under an .npz name), truncated, corrupt (bad zip, bad CRC), too large, or holds
+    object arrays or non-array members.
+    """
+    path = check_regular_file(path)
     try:
+        with open(path, "rb") as f:
+            magic = f.read(6)
+        if magic.startswith(b"\x93NUMPY"):
+            raise SchemaError(path, "", "cannot read npz: not an npz archive (it holds a single .npy array)")
+        if not magic.startswith(b"PK"):
+            raise SchemaError(path, "", "cannot read npz: not an npz archive (not a zip file)")
         with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
+            names = set(z.zip.namelist())
+            wanted = z.files if keys is None else [k for k in dict.fromkeys(keys) if k in z.files]
+            out = {}
+            for k in wanted:
+                member = f"{k}.npy" if f"{k}.npy" in names else k
+                size = z.zip.getinfo(member).file_size
+                if size > max_bytes:
+                    raise SchemaError(path, k, f"{size} bytes uncompressed, more than the {max_bytes} an array may "
+                                               "have here")
+                with z.zip.open(member) as m:
+                    try:
+                        shape, dtype = _npy_header(m)
+                    except ValueError as e:
+                        raise SchemaError(path, k, f"not a numpy array ({e})") from None
+                if dtype.hasobject:
+                    raise SchemaError(path, k, "object array (pickled data is refused)")
+                nbytes = math.prod(shape) * dtype.itemsize
+                if nbytes > size:
+                    raise SchemaError(path, k, f"header declares shape {list(shape)} of {dtype} ({nbytes} bytes), "
+                                               f"the archive holds {size} bytes")
+                out[k] = z[k]
+            return out
+    except SchemaError:
+        raise
     except NPZ_READ_ERRORS as e:
         raise SchemaError(path, "", f"cannot read npz (truncated, corrupt or not an npz of plain arrays): {e}") from None
 
 
 def load_versioned_npz(path: str | Path, fmt: str, version: int, required: tuple[str, ...] = (),
-                       what: str = "gsavatar") -> tuple[dict, dict[str, np.ndarray]]:
+                       what: str = "gsavatar", keys: tuple[str, ...] | None = None
+                       ) -> tuple[dict, dict[str, np.ndarray]]:
     """Load an npz written with a JSON ``header`` (format + version); no pickles.
 
+    ``keys``: optional arrays to read besides ``header`` and ``required`` (None: every array).
     Returns (header, arrays). Raises SchemaError naming the file and the field for a missing
     file, unreadable npz, missing/invalid header, wrong format or version, or missing arrays.
     """
     path = Path(path)
-    arrays = read_npz(path)
+    arrays = read_npz(path, None if keys is None else ("header", *required, *keys))
     if "header" not in arrays:
         raise SchemaError(path, "header", f"missing (not a {what} file)")
-    try:
-        hdr = json.loads(str(arrays.pop("header")))
-    except json.JSONDecodeError as e:
-        raise SchemaError(path, "header", f"invalid JSON: {e.msg}") from None
+    raw = arrays.pop("header")
+    if raw.dtype.kind != "U" or raw.ndim != 0:
+        raise SchemaError(path, "header", f"expected a JSON string, got {raw.dtype} array of shape {list(raw.shape)}")
+    hdr = parse_json_text(str(raw), path)
     if not isinstance(hdr, dict) or hdr.get("format") != fmt:
         got = hdr.get("format") if isinstance(hdr, dict) else hdr
         raise SchemaError(path, "header.format", f"expected {fmt!r}, got {got!r}")
-    if hdr.get("version") != version:
+    if not is_int(hdr.get("version")) or hdr["version"] != version:
         raise SchemaError(path, "header.version", f"unsupported version {hdr.get('version')!r} (expected {version})")
     for k in required:
         if k not in arrays:
