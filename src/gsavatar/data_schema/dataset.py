@@ -7,10 +7,15 @@ Layout::
     DATASET/<stage>/manifest.json   sharded per-frame stages (posed meshes, UV textures)
     DATASET/<stage>/shard-00003.npz + shard-00003.json  (sidecar: frames, sha256, arrays)
 
-Stage record: ``{"version", "config", "files": {relpath: sha256}, "seconds", "completed"}``.
+Stage record: ``{"version", "config", "inputs": {name: token}, "files": {relpath: sha256}, "seconds",
+"completed"}``. ``inputs`` fingerprints what the stage read (capture files, upstream stages; see
+:mod:`gsavatar.prep.inputs`): a stage is complete only while its version, config, inputs and output
+checksums all still match. A record without ``inputs`` (written before fingerprints existed) whose
+outputs verify is adopted: the current fingerprint is added, nothing recomputed (:func:`adopt_inputs`).
 A shard's sidecar is written (atomically) only after its npz, so a shard is complete
-iff its sidecar exists and the npz matches the sidecar's checksum. The manifest is a
-merge of the sidecars; ranks of a distributed run each write their own shards and
+iff its sidecar exists, the npz matches the sidecar's checksum and the sidecar's ``inputs_hash``
+matches the current inputs of its frames. The manifest is a merge of the sidecars (without their
+per-file ``inputs``); ranks of a distributed run each write their own shards and
 rank 0 merges. All paths in records and manifests are relative and must stay inside
 the dataset root.
 """
@@ -28,6 +33,7 @@ import numpy as np
 
 from gsavatar.data_schema.errors import SchemaError
 from gsavatar.utils.io import NPZ_READ_ERRORS, atomic_path, atomic_write_json, sha256_file
+from gsavatar.utils.jsonio import read_json
 
 DATASET_FORMAT = "gsavatar-dataset"
 DATASET_VERSION = 1
@@ -58,13 +64,9 @@ def safe_join(root: Path, rel: str, file: Path, fld: str) -> Path:
 
 # --------------------------------------------------------------------------- dataset.json
 def read_versioned_json(path: Path, fmt: str, version_key: str, version: int) -> dict:
-    """Parse a JSON object whose ``format`` and ``version_key`` must match; SchemaError names the field."""
-    try:
-        obj = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise SchemaError(path, f"line {e.lineno}", f"invalid JSON: {e.msg}") from None
-    except UnicodeDecodeError:
-        raise SchemaError(path, "", "not a UTF-8 JSON text file") from None
+    """Parse a JSON object (strictly: :func:`gsavatar.utils.jsonio.read_json`) whose ``format`` and
+    ``version_key`` must match; SchemaError names the field."""
+    obj = read_json(path)
     if not isinstance(obj, dict) or obj.get("format") != fmt:
         raise SchemaError(path, "format", f"expected {fmt!r}, got {obj.get('format') if isinstance(obj, dict) else obj!r}")
     if obj.get(version_key) != version:
@@ -88,14 +90,30 @@ def dataset_fingerprint(root: Path) -> str:
     return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
 
 
-def record_stage(root: Path, stage: str, config: dict, files: list[Path], seconds: float, capture: Path | None = None) -> None:
-    """Mark ``stage`` complete in dataset.json with checksums of its files."""
+def inputs_digest(tokens: dict[str, str]) -> str:
+    """One sha256 over an input fingerprint ``{name: token}`` (order independent)."""
+    return hashlib.sha256(json.dumps(tokens, sort_keys=True).encode()).hexdigest()
+
+
+def first_changed_input(old: dict[str, str] | None, new: dict[str, str]) -> str | None:
+    """Name of the first input (sorted) whose token differs between two fingerprints; None if they agree."""
+    old = old or {}
+    for k in sorted(set(old) | set(new)):
+        if old.get(k) != new.get(k):
+            return k
+    return None
+
+
+def record_stage(root: Path, stage: str, config: dict, files: list[Path], seconds: float, capture: Path | None = None,
+                 inputs: dict[str, str] | None = None) -> None:
+    """Mark ``stage`` complete in dataset.json with checksums of its files and the fingerprint of its ``inputs``."""
     obj = read_dataset_json(root)
     if capture is not None:
         obj["capture"] = str(Path(capture).resolve())
     obj["stages"][stage] = {
         "version": STAGE_VERSIONS[stage],
         "config": config,
+        "inputs": inputs,
         "files": {str(Path(f).resolve().relative_to(root.resolve())): sha256_file(f) for f in files},
         "seconds": round(float(seconds), 3),
         "completed": time.strftime("%Y-%m-%dT%H:%M:%S"),
@@ -103,22 +121,66 @@ def record_stage(root: Path, stage: str, config: dict, files: list[Path], second
     atomic_write_json(root / "dataset.json", obj)
 
 
-def stage_complete(root: Path, stage: str, config: dict | None = None, check_files: bool = True) -> bool:
-    """True if ``stage`` is recorded with the current version (and config), and its files verify."""
+def stage_identity(root: Path, stage: str) -> str | None:
+    """What a stage's outputs are a function of: sha256 of its recorded version, config and inputs (None if
+    not recorded). Downstream stages fingerprint it instead of the output bytes, which hold zip timestamps."""
+    try:
+        rec = read_dataset_json(Path(root))["stages"].get(stage)
+    except SchemaError:
+        return None
+    if not isinstance(rec, dict):
+        return None
+    return inputs_digest({"version": rec.get("version"), "config": rec.get("config"), "inputs": rec.get("inputs")})
+
+
+NO_INPUTS = "no input fingerprint recorded (prepared by an older gsavatar)"
+""":func:`stage_status` of a record written before input fingerprints existed."""
+
+
+def adopt_inputs(root: Path, stage: str, inputs: dict[str, str]) -> None:
+    """Add the ``inputs`` fingerprint to a record written before fingerprints existed (its outputs verify):
+    recomputing would change the output bytes, hence :func:`dataset_fingerprint`, and strand every run
+    trained on the dataset. Whether the inputs changed before this upgrade cannot be known."""
+    obj = read_dataset_json(root)
+    obj["stages"][stage]["inputs"] = inputs
+    atomic_write_json(root / "dataset.json", obj)
+
+
+def stage_status(root: Path, stage: str, config: dict | None = None, inputs: dict[str, str] | None = None,
+                 check_files: bool = True) -> str | None:
+    """None if ``stage`` is complete: recorded with the current version (and ``config``, and ``inputs``
+    fingerprint), its files verifying. Otherwise why not, e.g. ``inputs changed (calibration.json)``."""
     try:
         rec = read_dataset_json(root)["stages"].get(stage)
-    except SchemaError:
-        return False
-    if rec is None or rec.get("version") != STAGE_VERSIONS[stage]:
-        return False
+    except SchemaError as e:
+        return str(e)
+    if not isinstance(rec, dict):
+        return "not run yet"
+    if rec.get("version") != STAGE_VERSIONS[stage]:
+        return f"recorded by stage version {rec.get('version')!r}, this gsavatar writes {STAGE_VERSIONS[stage]}"
     if config is not None and rec.get("config") != json.loads(json.dumps(config)):
-        return False
+        return "config changed"
+    if inputs is not None:
+        if not isinstance(rec.get("inputs"), dict):
+            return NO_INPUTS
+        changed = first_changed_input(rec["inputs"], inputs)
+        if changed is not None:
+            return f"inputs changed ({changed})"
     if check_files:
-        for rel, digest in rec["files"].items():
+        files = rec.get("files")
+        if not isinstance(files, dict):
+            return "no output checksums recorded"
+        for rel, digest in files.items():
             p = root / rel
-            if not p.exists() or sha256_file(p) != digest:
-                return False
-    return True
+            if not p.is_file() or sha256_file(p) != digest:
+                return f"output {rel} missing or changed"
+    return None
+
+
+def stage_complete(root: Path, stage: str, config: dict | None = None, check_files: bool = True,
+                   inputs: dict[str, str] | None = None) -> bool:
+    """True if ``stage`` is recorded with the current version (and config and inputs), and its files verify."""
+    return stage_status(root, stage, config, inputs, check_files) is None
 
 
 def stage_path(root: Path, stage: str, name: str) -> Path:
@@ -162,23 +224,41 @@ class ShardStore:
     def sidecar(self, index: int) -> Path:
         return self.dir / f"shard-{index:05d}.json"
 
-    def is_complete(self, spec: ShardSpec, config_hash: str) -> bool:
-        sc = self.sidecar(spec.index)
-        if not sc.exists() or not self.npz(spec.index).exists():
-            return False
+    def read_sidecar(self, index: int) -> dict | None:
+        """The sidecar of shard ``index``, or None when it is missing or unreadable (= not written)."""
+        sc = self.sidecar(index)
+        if not sc.is_file():
+            return None
         try:
-            meta = json.loads(sc.read_text())
-        except json.JSONDecodeError:
+            meta = read_json(sc)
+        except SchemaError:
+            return None
+        return meta if isinstance(meta, dict) else None
+
+    def is_complete(self, spec: ShardSpec, config_hash: str, inputs_hash: str | None = None) -> bool:
+        """Sidecar and npz present and agreeing, same frames, config and (if given) inputs fingerprint."""
+        meta = self.read_sidecar(spec.index)
+        if meta is None or not self.npz(spec.index).exists():
             return False
         return (
             meta.get("frames") == spec.frames
             and meta.get("config_hash") == config_hash
             and meta.get("schema_version") == SHARDS_VERSION
+            and (inputs_hash is None or meta.get("inputs_hash") == inputs_hash)
             and sha256_file(self.npz(spec.index)) == meta.get("sha256")
         )
 
-    def write(self, spec: ShardSpec, arrays: dict[str, np.ndarray], config_hash: str) -> None:
-        """Write shard npz then its sidecar, both atomically (sidecar last = commit point)."""
+    def changed_input(self, spec: ShardSpec, inputs: dict[str, str]) -> str | None:
+        """First input of shard ``spec`` that differs from what its sidecar recorded (None: same, or no sidecar)."""
+        meta = self.read_sidecar(spec.index)
+        if meta is None or not isinstance(meta.get("inputs"), dict):
+            return None
+        return first_changed_input(meta["inputs"], inputs)
+
+    def write(self, spec: ShardSpec, arrays: dict[str, np.ndarray], config_hash: str,
+              inputs: dict[str, str] | None = None) -> None:
+        """Write shard npz then its sidecar, both atomically (sidecar last = commit point). ``inputs``: the
+        fingerprint of what the shard's frames were computed from (recorded with its digest)."""
         for k, a in arrays.items():
             if a.shape[0] != len(spec.frames):
                 raise ValueError(f"shard {spec.index}: array {k!r} has {a.shape[0]} rows for {len(spec.frames)} frames")
@@ -194,6 +274,7 @@ class ShardStore:
             "config_hash": config_hash,
             "schema_version": SHARDS_VERSION,
             "arrays": {k: [list(a.shape[1:]), str(a.dtype)] for k, a in arrays.items()},
+            **({"inputs_hash": inputs_digest(inputs), "inputs": inputs} if inputs is not None else {}),
         })
 
     def merge_manifest(self, specs: list[ShardSpec], extra: dict | None = None) -> Path:
@@ -201,9 +282,10 @@ class ShardStore:
         shards = []
         for s in specs:
             sc = self.sidecar(s.index)
-            if not sc.exists():
+            meta = self.read_sidecar(s.index)
+            if meta is None:
                 raise SchemaError(sc, "", f"shard {s.index} of stage {self.stage!r} is missing; re-run the stage")
-            shards.append(json.loads(sc.read_text()))
+            shards.append({k: v for k, v in meta.items() if k != "inputs"})  # per-file detail stays in the sidecar
         path = self.dir / "manifest.json"
         atomic_write_json(path, {
             "format": SHARDS_FORMAT,

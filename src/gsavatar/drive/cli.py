@@ -27,6 +27,8 @@ import tyro
 from gsavatar.drive.driver import DriveConfig, Driver, load_predictor_for, motion_inputs, texture_source
 from gsavatar.utils.cli import run_reporting_errors
 from gsavatar.utils.io import atomic_path, atomic_save_npz, atomic_write_json, write_image
+from gsavatar.utils.outdir import claim_output_dir
+from gsavatar.utils.paths import output_path
 
 
 @dataclass(kw_only=True)
@@ -53,6 +55,9 @@ class DriveArgs(DriveConfig):
     """LPIPS metric: ``auto`` uses it when its weights load, ``on`` requires it, ``off`` skips it."""
     ramp_up: int = 0
     """Also measure the first N frames after zero / pose / encoder initialisation (needs ground truth + textures)."""
+    force: bool = False
+    """Write into a non-empty ``out`` that is not an avatar-drive output (refused otherwise, so a user's
+    files are never overwritten). An earlier drive's folder is reused without it."""
 
     def config(self) -> DriveConfig:
         return DriveConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(DriveConfig)})
@@ -128,8 +133,7 @@ def drive(args: DriveArgs) -> dict:
     textures = texture_source(motion, scene, cfg.textures) if d.needs_textures else None
     lp, lp_name = _lpips(args.lpips, d.device) if gt is not None else (None, "off")
     acc = SequenceMetrics(lp)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = claim_output_dir(Path(args.out), "drive", args.force, register=True)
     cams = [v.name for v in d.views]
     T = motion.num_frames
     fps_video = cfg.video_fps or motion.fps
@@ -151,7 +155,7 @@ def drive(args: DriveArgs) -> dict:
                     g = gts.get(c)
                     acc.add(t, c, fr.images[c], fr.alphas[c], None if g is None else g[0], None if g is None else g[1])
                     if args.write_frames:
-                        write_image(out / "frames" / c / f"{t:06d}.png", fr.images[c].numpy())
+                        write_image(output_path(out, "frames", c, f"{t:06d}.png"), fr.images[c].numpy())
                 writer.append_data(_tile(fr.images))
                 bar.advance()
         finally:

@@ -151,6 +151,9 @@ class Synth:
     """Cache of the anny body build (default: $ANNY_CACHE_DIR or ~/.cache/gsavatar/anny)."""
     overwrite: bool = False
     """Replace an existing capture in ``out`` (otherwise a valid one is reused)."""
+    force_out: bool = False
+    """Write into a non-empty ``out`` that holds no capture (refused otherwise, so a user's files are never
+    overwritten)."""
 
     def run(self) -> None:
         stages.synth(self)

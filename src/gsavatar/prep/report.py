@@ -22,7 +22,9 @@ import numpy as np
 from gsavatar.data_schema import load_capture
 from gsavatar.data_schema.dataset import ShardReader, read_dataset_json
 from gsavatar.prep.common import stage_dir
+from gsavatar.utils.cli import run_reporting_errors
 from gsavatar.utils.io import atomic_write_json, read_image, write_image
+from gsavatar.utils.outdir import claim_output_dir
 
 
 def texture_psnr(pred: np.ndarray, gt: np.ndarray, sel: np.ndarray) -> float:
@@ -125,10 +127,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--compare-mean", type=int, default=0, help="frames to re-project with plain-mean fusion")
     ap.add_argument("--previews", type=int, default=3)
+    ap.add_argument("--force", action="store_true",
+                    help="write into a non-empty --out that is not a report folder (refused otherwise)")
     a = ap.parse_args(argv)
-    rep = build_report(a.dataset, a.out, compare_mean=a.compare_mean, previews=a.previews)
-    print(json.dumps(rep["summary"], indent=1))
-    return 0
+
+    def run() -> None:
+        claim_output_dir(a.out, "report", a.force, register=True)
+        rep = build_report(a.dataset, a.out, compare_mean=a.compare_mean, previews=a.previews)
+        print(json.dumps(rep["summary"], indent=1))
+
+    return run_reporting_errors(run)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gsavatar.data_schema.dataset import ShardSpec, ShardStore, plan_shards
+from gsavatar.data_schema.dataset import ShardSpec, ShardStore, inputs_digest, plan_shards
 from gsavatar.utils.progress import progress_bar
 
 
@@ -70,8 +70,9 @@ def config_hash(config: dict) -> str:
     return hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def _run_one(fn: Callable[[list[int]], dict[str, np.ndarray]], store: ShardStore, spec: ShardSpec, chash: str) -> int:
-    store.write(spec, fn(spec.frames), chash)
+def _run_one(fn: Callable[[list[int]], dict[str, np.ndarray]], store: ShardStore, spec: ShardSpec, chash: str,
+             inputs: dict[str, str] | None = None) -> int:
+    store.write(spec, fn(spec.frames), chash, inputs)
     return len(spec.frames)
 
 
@@ -84,26 +85,31 @@ def run_sharded(
     info: RankInfo,
     workers: int = 1,
     label: str = "",
+    shard_inputs: dict[int, dict[str, str]] | None = None,
 ) -> tuple[list[ShardSpec], bool]:
     """Compute the missing shards of this rank. Returns (all specs, whether all are complete).
 
     ``compute`` maps a list of frames to arrays with a leading frame axis; with
     ``workers > 1`` it must be picklable (a module-level function or functools.partial).
+    ``shard_inputs``: input fingerprint per shard index (:mod:`gsavatar.prep.inputs`); a shard whose
+    sidecar recorded another one is recomputed, not resumed.
     """
     chash = config_hash(config)
     specs = plan_shards(frames, shard_size)
+    tokens = shard_inputs or {}
+    ihash = {i: inputs_digest(t) for i, t in tokens.items()}
     mine = [s for s in specs if s.index % info.world == info.rank]
-    todo = [s for s in mine if not store.is_complete(s, chash)]
+    todo = [s for s in mine if not store.is_complete(s, chash, ihash.get(s.index))]
     n_frames = sum(len(s.frames) for s in todo)
     with progress_bar(f"{label} ({len(mine) - len(todo)}/{len(mine)} shards done)", total=n_frames) as bar:
         if workers > 1 and len(todo) > 1:
             # spawn, not fork: a fork after torch/open3d started their thread pools can deadlock
             with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as ex:
-                futs = [ex.submit(_run_one, compute, store, s, chash) for s in todo]
+                futs = [ex.submit(_run_one, compute, store, s, chash, tokens.get(s.index)) for s in todo]
                 for f in futs:
                     bar.advance(f.result())
         else:
             for s in todo:
-                bar.advance(_run_one(compute, store, s, chash))
-    done = all(store.is_complete(s, chash) for s in specs)
+                bar.advance(_run_one(compute, store, s, chash, tokens.get(s.index)))
+    done = all(store.is_complete(s, chash, ihash.get(s.index)) for s in specs)
     return specs, done

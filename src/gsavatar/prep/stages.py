@@ -9,8 +9,20 @@ from pathlib import Path
 import numpy as np
 
 from gsavatar.data_schema import load_capture
-from gsavatar.data_schema.dataset import stage_complete
+from gsavatar.data_schema.dataset import read_dataset_json, stage_complete
 from gsavatar.prep.common import StageArgs, open_capture, run_frame_stage, run_single_file_stage
+from gsavatar.prep.inputs import frame_inputs, metadata_inputs, upstream_inputs
+from gsavatar.utils.io import read_npz
+from gsavatar.utils.outdir import claim_output_dir
+from gsavatar.utils.paths import output_path
+
+# Capture files each stage reads (fingerprinted; a change re-runs the stage). ``template/`` = every file in it.
+POSE_TEMPLATE_INPUTS = ("capture.json", "motion.npz", "template/")
+UV_ATLAS_INPUTS = ("template/",)
+PROJECT_UV_INPUTS = ("capture.json", "calibration.json", "splits.json", "template/")  # + images, masks, upstream
+FIT_PCA_INPUTS = ("motion.npz", "splits.json", "template/rig.json")
+SAMPLE_POINTS_INPUTS = ("template/",)  # automatic counts come from calibration.json but are resolved into the config
+LOCALIZE_INPUTS = ("template/",)  # + sample-points
 
 
 def default_anny_cache() -> Path:
@@ -29,7 +41,8 @@ def pose_template(args: StageArgs) -> bool:
     cap = open_capture(args)
     frames = list(range(cap.num_frames))
     return run_frame_stage("pose-template", args, {"num_vertices": int(len(cap.template.vertices))}, frames,
-                           functools.partial(_pose_shard, str(args.capture)))
+                           functools.partial(_pose_shard, str(args.capture)),
+                           metadata_inputs(cap.root, POSE_TEMPLATE_INPUTS))
 
 
 # --------------------------------------------------------------------------- synth
@@ -44,6 +57,7 @@ def synth(cmd) -> None:
         load_capture(cmd.out)  # validates; an existing complete capture is reused, not rebuilt
         print(f"{cmd.out} already holds a valid capture; reusing it (--overwrite to rebuild)")
         return
+    claim_output_dir(Path(cmd.out), "capture", cmd.force_out, "--force-out")  # not registered: it fills the anny cache too
     make_capture(cfg, Path(cmd.out), cmd.anny_cache or default_anny_cache(), overwrite=cmd.overwrite)
     print(f"capture written to {cmd.out}")
 
@@ -90,7 +104,8 @@ def uv_atlas(args: StageArgs, tex_size: int, gutter_px: float = 1.0) -> bool:
               f"({'template UVs' if cap.template.uvs is not None else 'xatlas unwrap'})")
         return [path]
 
-    return run_single_file_stage("uv-atlas", args, atlas_config(tex_size, gutter_px), produce)
+    return run_single_file_stage("uv-atlas", args, atlas_config(tex_size, gutter_px), produce,
+                                 metadata_inputs(cap.root, UV_ATLAS_INPUTS))
 
 
 def load_atlas(root: Path):
@@ -98,17 +113,15 @@ def load_atlas(root: Path):
     from gsavatar.data_schema.dataset import stage_path
     from gsavatar.prep.uv_atlas import TexelMap
 
-    with np.load(stage_path(Path(root), "uv-atlas", "atlas.npz")) as z:
-        tm = TexelMap(z["face"], z["bary"], int(z["size"]), z["interior"])
-        return tm, z["uvs"], z["face_uvs"]
+    z = read_npz(stage_path(Path(root), "uv-atlas", "atlas.npz"), keys=("face", "bary", "size", "interior", "uvs", "face_uvs"))
+    return TexelMap(z["face"], z["bary"], int(z["size"]), z["interior"]), z["uvs"], z["face_uvs"]
 
 
 def load_atlas_face_mask(root: Path) -> np.ndarray | None:
     """Face region in the atlas' UV layout (None after an xatlas unwrap or without a mask).  # [h, w] bool"""
     from gsavatar.data_schema.dataset import stage_path
 
-    with np.load(stage_path(Path(root), "uv-atlas", "atlas.npz")) as z:
-        m = z["face_uv_mask"]
+    m = read_npz(stage_path(Path(root), "uv-atlas", "atlas.npz"), keys=("face_uv_mask",))["face_uv_mask"]
     return m if m.any() else None
 
 
@@ -160,12 +173,18 @@ def project_uv(args: StageArgs, cfg, cameras: str = "train") -> bool:
     cfg = resolve_tex_size(cfg, cap)
     cams = sorted(cap.splits["train"].cameras) if cameras == "train" else sorted(cap.cameras)
     check_cameras_see_body(cap, cams)
+    from gsavatar.prep.project_uv import check_mask_coverage
+
+    check_mask_coverage(cap, cams)
     pose_template(args)
     uv_atlas(args, cfg.tex_size, cfg.gutter_px)
     config = {**stage_config(cfg), "cameras": cams}
     cfg_json = stage_config(cfg)
+    inputs = {**metadata_inputs(cap.root, PROJECT_UV_INPUTS),
+              **upstream_inputs(Path(args.out), ("pose-template", "uv-atlas"))}
     return run_frame_stage("project-uv", args, config, list(range(cap.num_frames)),
-                           functools.partial(_project_shard, str(args.capture), str(args.out), cfg_json, cams))
+                           functools.partial(_project_shard, str(args.capture), str(args.out), cfg_json, cams),
+                           inputs, functools.partial(frame_inputs, cap, cams=cams))
 
 
 # --------------------------------------------------------------------------- fit-pca
@@ -189,7 +208,7 @@ def fit_pca(args: StageArgs, n_components: int = 5, global_components: int = 20,
                 print(f"[fit-pca] local components per group: {p.components_per_group()}")
         return out
 
-    return run_single_file_stage("fit-pca", args, config, produce)
+    return run_single_file_stage("fit-pca", args, config, produce, metadata_inputs(cap.root, FIT_PCA_INPUTS))
 
 
 # --------------------------------------------------------------------------- sample-points
@@ -226,7 +245,8 @@ def sample_points(args: StageArgs, anchors: int = 0, control: int = 0, gaussians
         h.save(path)
         return [path]
 
-    return run_single_file_stage("sample-points", args, config, produce)
+    return run_single_file_stage("sample-points", args, config, produce,
+                                 metadata_inputs(cap.root, SAMPLE_POINTS_INPUTS))
 
 
 # --------------------------------------------------------------------------- localize
@@ -238,8 +258,11 @@ def localize(args: StageArgs, ancestor_levels: int = 1, k_neighbors: int = 6, fi
 
     cap = open_capture(args)
     root = Path(args.out)
-    if not stage_complete(root, "sample-points"):  # any recorded counts are fine; only run it if missing
-        sample_points(args)
+    if not stage_complete(root, "sample-points", inputs=metadata_inputs(cap.root, SAMPLE_POINTS_INPUTS)):
+        # any recorded counts are fine: a stale record is recomputed with its own counts, a missing one with the defaults
+        rec = read_dataset_json(root)["stages"].get("sample-points") or {}
+        keep = {k: v for k, v in (rec.get("config") or {}).items() if k in ("anchors", "control", "gaussians", "seed")}
+        sample_points(args, **keep)
     config = {"ancestor_levels": ancestor_levels, "k_neighbors": k_neighbors, "figure_param": figure_param, "figures": figures}
 
     def produce() -> list[Path]:
@@ -258,7 +281,8 @@ def localize(args: StageArgs, ancestor_levels: int = 1, k_neighbors: int = 6, fi
             param = figure_param if figure_param in [p.name for p in cap.rig.params] else cap.rig.params[0].name
             files.append(Path(render_hierarchy_figure(cap.template, h, root / "localize" / "hierarchy.png")))
             files.append(Path(render_influence_figure(cap.template, h, masks, cap.rig,
-                                                      root / "localize" / f"influence_{param}.png", param=param)))
+                                                      output_path(root, "localize", f"influence_{param}.png"), param=param)))
         return files
 
-    return run_single_file_stage("localize", args, config, produce)
+    inputs = {**metadata_inputs(cap.root, LOCALIZE_INPUTS), **upstream_inputs(root, ("sample-points",))}
+    return run_single_file_stage("localize", args, config, produce, inputs)

@@ -319,9 +319,11 @@ class MakeArgs:
     """Anny model-data cache directory (default: $ANNY_CACHE_DIR, else .cache/anny)."""
     overwrite: bool = False
     """Replace an existing capture in ``out``."""
+    force_out: bool = False
+    """Write into a non-empty ``out`` that holds no capture (refused otherwise, so a user's files are never overwritten)."""
 
 
-def main() -> None:
+def main() -> int:
     """``python -m gsavatar.synth.make {tiny,small,hard} --out DIR [--config.FIELD VALUE ...]``"""
     import time
 
@@ -333,11 +335,18 @@ def main() -> None:
         {name: (PRESET_HELP[name], MakeArgs(out=Path(f"captures/synth_{name}"), config=cfg)) for name, cfg in PRESETS.items()})
     cfg = args.config
     cache = args.anny_cache or Path(os.environ.get("ANNY_CACHE_DIR", ".cache/anny"))
-    t0 = time.perf_counter()
-    make_capture(cfg, args.out, cache, progress=True, overwrite=args.overwrite)
-    print(f"wrote {args.out} ({cfg.preset}: {cfg.num_cams + len(cfg.special_cameras)} cameras x {cfg.num_frames} frames) "
-          f"in {time.perf_counter() - t0:.1f} s")
+    from gsavatar.utils.cli import run_reporting_errors
+    from gsavatar.utils.outdir import claim_output_dir
+
+    def run() -> None:
+        claim_output_dir(args.out, "capture", args.force_out, "--force-out")
+        t0 = time.perf_counter()
+        make_capture(cfg, args.out, cache, progress=True, overwrite=args.overwrite)
+        print(f"wrote {args.out} ({cfg.preset}: {cfg.num_cams + len(cfg.special_cameras)} cameras x {cfg.num_frames} "
+              f"frames) in {time.perf_counter() - t0:.1f} s")
+
+    return run_reporting_errors(run)
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

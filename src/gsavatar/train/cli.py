@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,11 +28,17 @@ class Avatar(TrainConfig):
 
     evaluate: bool = True
     """Evaluate held-out cameras of training frames (and test frames) at the end."""
+    force: bool = False
+    """Train into a non-empty ``out`` that is not a gsavatar run (refused otherwise, so a user's
+    ``config.json`` or ``metrics.jsonl`` is never overwritten). A run of ours is resumed without it."""
 
     def run(self) -> None:
         from gsavatar.train.runs import train_and_evaluate
+        from gsavatar.utils.paths import add_output_root
 
-        train_and_evaluate(self, self.evaluate)
+        add_output_root(self.out)  # every write of this command stays in the run (cleared when it ends)
+        cfg = TrainConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(TrainConfig)})
+        train_and_evaluate(cfg, self.evaluate, force_out=self.force)
 
 
 @dataclass

@@ -29,10 +29,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from gsavatar.data_schema.errors import SchemaError
 from gsavatar.models.predictor import AppearancePredictor, PredictorConfig
-from gsavatar.train.checkpoint import load_checkpoint, save_checkpoint
+from gsavatar.train.checkpoint import load_checkpoint, resume_hint, save_checkpoint
 from gsavatar.train.sampler import step_generator
-from gsavatar.utils.io import atomic_save_npz, atomic_write_json
+from gsavatar.utils.cli import set_resume_hint
+from gsavatar.utils.io import atomic_save_npz, atomic_write_json, read_npz
+from gsavatar.utils.jsonio import parse_json_text
+from gsavatar.utils.outdir import claim_output_dir
 
 TARGETS_FORMAT = "gsavatar-predictor-targets"
 
@@ -117,10 +121,14 @@ def extract_targets(run: Path, out: Path | None = None, device: str = "auto", ba
     reader = ShardReader(stage_dir(scene.dataset, "project-uv"))
     frames = np.asarray(reader.frames, dtype=np.int64)
     if path.exists():
-        with np.load(path, allow_pickle=False) as z:
-            hdr = json.loads(str(z["header"]))
-            if hdr.get("format") == TARGETS_FORMAT and hdr.get("step") == step and np.array_equal(z["frames"], frames):
-                return TargetLatents(z["latents"], z["frames"])
+        try:
+            z = read_npz(path, keys=("header", "latents", "frames"))
+            hdr = parse_json_text(str(z["header"]), path)
+        except (SchemaError, KeyError):
+            z, hdr = {}, None  # unreadable cache: extract again and overwrite it
+        if (isinstance(hdr, dict) and hdr.get("format") == TARGETS_FORMAT and hdr.get("step") == step
+                and "latents" in z and "frames" in z and np.array_equal(z["frames"], frames)):
+            return TargetLatents(z["latents"], z["frames"])
     dev = next(net.parameters()).device
     out_lat = []
     for i in range(0, len(frames), batch_size):
@@ -353,6 +361,7 @@ class PredictorTrainer:
     def save(self) -> None:
         save_checkpoint(self.ckpt, step=self.step, config=self.config, modules={"predictor": self.model},
                         optimizer=self.optim)
+        set_resume_hint(resume_hint(self.ckpt, self.step))
 
     def loss(self, step: int) -> tuple[Tensor, dict[str, float]]:
         g = step_generator(self.cfg.seed, step)
@@ -371,6 +380,7 @@ class PredictorTrainer:
         cfg = self.cfg
         self.out.mkdir(parents=True, exist_ok=True)
         stop = cfg.steps if cfg.max_steps_this_run <= 0 else min(cfg.steps, self.step + cfg.max_steps_this_run)
+        set_resume_hint(resume_hint(self.ckpt, self.step))
         t0, n0, logs = time.perf_counter(), self.step, {}
         self.model.train()
         while self.step < stop:
@@ -394,11 +404,14 @@ class PredictorTrainer:
 
 
 def train_predictor(run: Path, cfg: PredictorTrainConfig, out: Path | None = None, device: str = "auto",
-                    evaluate: bool = True) -> dict:
-    """Targets -> model -> train (resumes) -> evaluate on the train and test segments (``eval.json``)."""
+                    evaluate: bool = True, force_out: bool = False) -> dict:
+    """Targets -> model -> train (resumes) -> evaluate on the train and test segments (``eval.json``).
+
+    ``force_out``: accept a non-empty ``out`` that is not a gsavatar predictor output (refused otherwise)."""
     from gsavatar.train.runs import load_run
 
     loaded = load_run(run, device)
+    claim_output_dir(predictor_dir(run, out), "predictor", force_out)
     net, scene = loaded[0], loaded[1]
     dev = next(net.parameters()).device
     targets = extract_targets(run, out, loaded=loaded)

@@ -25,6 +25,8 @@ class Predictor(PredictorTrainConfig):
     """``auto`` (CUDA if available), ``cpu`` or ``cuda[:i]``."""
     evaluate: bool = True
     """Report the L1 to the encoder latents on train and held-out test frames at the end (eval.json)."""
+    force: bool = False
+    """Write into a non-empty ``out`` that is not a gsavatar predictor output (refused otherwise)."""
 
     def train_config(self) -> PredictorTrainConfig:
         names = PredictorTrainConfig.__dataclass_fields__
@@ -35,5 +37,5 @@ class Predictor(PredictorTrainConfig):
 
         if not Path(self.run).is_dir():
             raise FileNotFoundError(f"run directory {self.run} does not exist")
-        res = train_predictor(self.run, self.train_config(), self.out, self.device, self.evaluate)
+        res = train_predictor(self.run, self.train_config(), self.out, self.device, self.evaluate, force_out=self.force)
         print(json.dumps(res, indent=1))

@@ -2,20 +2,23 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from gsavatar.data_schema.dataset import dataset_fingerprint
+from gsavatar.data_schema.errors import SchemaError
 from gsavatar.models.encoder import sample_at_uv
 from gsavatar.train.checkpoint import load_checkpoint
-from gsavatar.train.config import TrainConfig, resolve
+from gsavatar.train.config import TrainConfig, from_json, resolve
 from gsavatar.train.data import ViewDataset, load_scene
 from gsavatar.train.evaluate import evaluate_views, select_frames
-from gsavatar.train.trainer import AvatarNet, Trainer, build_net, model_config, pick_device, render_views
+from gsavatar.train.trainer import (AvatarNet, Trainer, build_net, check_same_dataset, model_config, pick_device,
+                                   render_views)
 from gsavatar.utils.io import atomic_write_json
+from gsavatar.utils.jsonio import read_json
 
 
 def lpips_or_none(cfg: TrainConfig, device):
@@ -47,9 +50,10 @@ def check_train_config(cfg: TrainConfig) -> None:
         raise ValueError(f"sh_increase_fraction must be in [0, 1], got {cfg.sh_increase_fraction!r}")
 
 
-def train_and_evaluate(cfg: TrainConfig, evaluate: bool = True) -> dict:
+def train_and_evaluate(cfg: TrainConfig, evaluate: bool = True, force_out: bool = False) -> dict:
+    """Train (resuming) then evaluate; ``force_out``: accept a non-empty ``cfg.out`` that is not a gsavatar run."""
     check_train_config(cfg)
-    tr = Trainer(cfg)
+    tr = Trainer(cfg, force_out=force_out)
     summary = tr.train()
     if tr.rank == 0:
         print(f"[train] {summary['step']} steps in {summary['seconds']:.0f}s this run")
@@ -65,18 +69,22 @@ def load_run(run: Path, device: str = "auto") -> tuple[AvatarNet, object, TrainC
     run = Path(run)
     cfg_path = run / "config.json"
     if not cfg_path.exists():
-        from gsavatar.data_schema import SchemaError
-
         raise SchemaError(cfg_path, "", "not a training run (config.json missing)")
-    saved = json.loads(cfg_path.read_text())
-    fields = {f.name for f in dataclasses.fields(TrainConfig)}
-    t = {k: v for k, v in saved["train"].items() if k in fields and k != "losses"}
-    cfg = resolve(TrainConfig(**{**t, "dataset": Path(t["dataset"]), "out": Path(t["out"]),
-                                 "lpips_weights": Path(t["lpips_weights"]) if t.get("lpips_weights") else None}))
+    saved = read_json(cfg_path)  # strict: duplicate keys, NaN, deep nesting, FIFOs are refused naming the file
+    if not isinstance(saved, dict) or "train" not in saved:
+        raise SchemaError(cfg_path, "train", "missing (not the config.json of a gsavatar run)")
+    cfg = from_json(saved["train"], cfg_path)
+    try:
+        check_train_config(cfg)
+    except ValueError as e:
+        raise SchemaError(cfg_path, "train", str(e)) from None
+    cfg = resolve(cfg)
     dev = pick_device(device)
     scene = load_scene(cfg.dataset)
     net = build_net(scene, model_config(cfg), cfg.seed).to(dev)
-    state = load_checkpoint(run / "checkpoints" / "latest.pt", saved, strict_config_keys=("model",))
+    ckpt = run / "checkpoints" / "latest.pt"
+    state = load_checkpoint(ckpt, saved, strict_config_keys=("model",))
+    check_same_dataset(ckpt, state["config"], cfg.dataset, dataset_fingerprint(cfg.dataset))
     net.load_state_dict(state["modules"]["net"])
     net.eval()
     return net, scene, cfg, int(state["step"])

@@ -20,11 +20,13 @@ from gsavatar.models.config import ModelConfig, model_preset, variant_config
 from gsavatar.models.encoder import AppearanceEncoder, LatentNorm, sample_at_uv
 from gsavatar.render import rasterize
 from gsavatar.train import losses as L
-from gsavatar.train.checkpoint import load_checkpoint, save_checkpoint
+from gsavatar.train.checkpoint import load_checkpoint, resume_hint, save_checkpoint
 from gsavatar.train.config import TrainConfig, resolve, to_json
 from gsavatar.train.data import PreparedScene, ViewDataset, load_scene
 from gsavatar.train.sampler import StepBatchSampler, step_generator
+from gsavatar.utils.cli import set_resume_hint
 from gsavatar.utils.io import atomic_write_json, atomic_write_text
+from gsavatar.utils.outdir import claim_output_dir
 
 
 class NetOutput(NamedTuple):
@@ -119,8 +121,26 @@ def trim_log(path: Path, step: int) -> None:
     atomic_write_text(path, "".join(k + "\n" for k in keep))
 
 
+def check_same_dataset(ckpt: Path, saved: dict, dataset: Path, dataset_id: str) -> None:
+    """Refuse a checkpoint trained on another dataset than ``dataset`` (content id ``dataset_id``,
+    :func:`gsavatar.data_schema.dataset.dataset_fingerprint`): another subject, or another preparation,
+    now at the same path. Checkpoints written before ``dataset_id`` existed are compared by resolved path.
+    Raises SchemaError naming ``ckpt`` and the field."""
+    saved_id = saved.get("dataset_id")
+    if saved_id is not None and saved_id != dataset_id:
+        raise SchemaError(ckpt, "config.dataset_id", f"checkpoint was trained on another dataset (content "
+                          f"{str(saved_id)[:12]}..., {dataset} now holds {dataset_id[:12]}...): the dataset was "
+                          f"replaced or re-prepared; train a new run (another --out)")
+    if saved_id is None:
+        old = Path(saved["train"]["dataset"])
+        if old.resolve() != Path(dataset).resolve():
+            raise SchemaError(ckpt, "config.train.dataset", f"checkpoint has {str(old)!r}, this run has "
+                              f"{str(dataset)!r}: it belongs to another configuration")
+
+
 class Trainer:
-    def __init__(self, cfg: TrainConfig) -> None:
+    def __init__(self, cfg: TrainConfig, force_out: bool = False) -> None:
+        """``force_out``: train into a non-empty ``cfg.out`` that is not a gsavatar run (refused otherwise)."""
         self.cfg = resolve(cfg)
         if self.cfg.deterministic:
             torch.set_num_threads(1)
@@ -132,6 +152,8 @@ class Trainer:
         self.out = Path(self.cfg.out)
         self.scene = load_scene(self.cfg.dataset)
         self.dataset_id = dataset_fingerprint(Path(self.cfg.dataset))
+        if self.rank == 0:  # before the checkpoint is read or anything written; only rank 0 writes into the run
+            claim_output_dir(self.out, "run", force_out)
         self.mcfg = model_config(self.cfg)
         self.net = build_net(self.scene, self.mcfg, self.cfg.seed).to(self.device)
         self.ddp = self.net
@@ -172,15 +194,7 @@ class Trainer:
         # The dataset is identified by content (stage configs + file checksums), not by how its path was spelt;
         # checkpoints written before ``dataset_id`` existed are compared by resolved path.
         state = load_checkpoint(self.ckpt, self.config_json(), strict_config_keys=("model", "train.seed", "train.batch_size"))
-        saved_id = state["config"].get("dataset_id")
-        if saved_id is not None and saved_id != self.dataset_id:
-            raise SchemaError(self.ckpt, "config.dataset_id", f"checkpoint was trained on another dataset (content "
-                              f"{saved_id[:12]}..., {self.cfg.dataset} is {self.dataset_id[:12]}...)")
-        if saved_id is None:
-            old = Path(state["config"]["train"]["dataset"])
-            if old.resolve() != Path(self.cfg.dataset).resolve():
-                raise SchemaError(self.ckpt, "config.train.dataset", f"checkpoint has {str(old)!r}, this run has "
-                                  f"{str(self.cfg.dataset)!r}: it belongs to another configuration")
+        check_same_dataset(self.ckpt, state["config"], Path(self.cfg.dataset), self.dataset_id)
         self.net.load_state_dict(state["modules"]["net"])
         self.optim.load_state_dict(state["optimizer"])
         self.step = int(state["step"])
@@ -192,6 +206,7 @@ class Trainer:
             return
         save_checkpoint(self.ckpt, step=self.step, config=self.config_json(), modules={"net": self.net},
                         optimizer=self.optim)
+        set_resume_hint(resume_hint(self.ckpt, self.step))
 
     # ------------------------------------------------------------------ one step
     def sh_degree(self, step: int) -> int:
@@ -252,6 +267,7 @@ class Trainer:
         if self.rank == 0:
             trim_log(log_path, self.step)
         stop_at = cfg.steps if cfg.max_steps_this_run <= 0 else min(cfg.steps, self.step + cfg.max_steps_this_run)
+        set_resume_hint(resume_hint(self.ckpt, self.step))
         t0, n0 = time.perf_counter(), self.step
         last: dict[str, float] = {}
         self.net.train()
