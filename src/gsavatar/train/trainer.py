@@ -114,9 +114,9 @@ def trim_log(path: Path, step: int) -> None:
     keep = []
     for line in path.read_text().splitlines():
         try:
-            if json.loads(line)["step"] <= step:
+            if int(json.loads(line)["step"]) <= step:
                 keep.append(line)
-        except (ValueError, KeyError):
+        except (ValueError, KeyError, TypeError, RecursionError):  # torn or foreign lines are dropped
             continue
     atomic_write_text(path, "".join(k + "\n" for k in keep))
 
@@ -304,12 +304,13 @@ class Trainer:
         threads), for the results table. Steps repeated after a resume count again (they were paid again)."""
         path = self.out / "timing.json"
         prev = {"steps": 0, "seconds": 0.0, "invocations": 0}
-        if path.exists():
-            try:
-                prev = {**prev, **json.loads(path.read_text())}
-            except ValueError:
-                pass  # a torn file of a killed run: start the tally again
-        tot_steps, tot_s = int(prev["steps"]) + steps, float(prev["seconds"]) + seconds
+        try:
+            got = json.loads(path.read_text()) if path.exists() else {}
+            got = {**prev, **got}
+            prev = {"steps": int(got["steps"]), "seconds": float(got["seconds"]), "invocations": int(got["invocations"])}
+        except (ValueError, TypeError, KeyError, RecursionError):
+            pass  # a torn (killed run) or foreign file: start the tally again
+        tot_steps, tot_s = prev["steps"] + steps, prev["seconds"] + seconds
         atomic_write_json(path, {"steps": tot_steps, "seconds": round(tot_s, 2),
                                  "steps_per_s": round(tot_steps / max(tot_s, 1e-9), 4),
                                  "invocations": int(prev["invocations"]) + 1, "threads": torch.get_num_threads(),
