@@ -26,7 +26,7 @@ from pathlib import Path
 CHILD = r"""
 import json, sys, time, tempfile, inspect
 import torch
-from gsavatar.train.config import TrainConfig
+from gsavatar.runs.config import TrainConfig
 from gsavatar.train.trainer import Trainer
 a = json.loads(sys.argv[1])
 kw = dict(dataset=a["dataset"], out=tempfile.mkdtemp(prefix="bench_step_"), preset=a["preset"], lpips="off",

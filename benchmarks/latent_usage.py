@@ -36,7 +36,8 @@ def main() -> None:
     a = ap.parse_args()
 
     import gsavatar.models.config as mc
-    from gsavatar.train.config import TrainConfig
+    from gsavatar.runs.config import TrainConfig
+    from gsavatar.runs.load import LoadedRun
     from gsavatar.train.runs import evaluate_run
     from gsavatar.train.trainer import Trainer
 
@@ -53,7 +54,7 @@ def main() -> None:
     t = time.perf_counter()
     tr.train()
     seconds = time.perf_counter() - t
-    res = evaluate_run(tr.out, 8, loaded=(tr.net, tr.scene, tr.cfg))
+    res = evaluate_run(tr.out, 8, loaded=LoadedRun(tr.net, tr.scene, tr.cfg, tr.step))
     print(json.dumps({"name": a.name, "recipe": mc.CPU_RECIPE, "basis_lr_scale": tr.cfg.basis_lr_scale,
                       "vae_noise_step": tr.cfg.vae_noise_step, "steps": a.steps,
                       "latent_gain_db": round(res["latent_gain_db"], 4),

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import torch
 
+from gsavatar.models.batch import FrameBatch
 from gsavatar.utils.io import atomic_write_json
 
 ROWS = [
@@ -77,8 +78,8 @@ def drive_row(run: Path, mode: str, out: Path, image_scale: float) -> dict:
 def locality(run: Path, param: str, delta: float = 0.3) -> dict:
     """Mean |d colour| and |d position| of Gaussians outside/inside ``param``'s region when it changes."""
     from gsavatar.models.config import SH_C0
-    from gsavatar.train.runs import load_run
-    from gsavatar.train.trainer import model_config
+    from gsavatar.runs.config import model_config
+    from gsavatar.runs.load import load_run
 
     net, scene, cfg, _ = load_run(run)
     cap = scene.capture
@@ -91,16 +92,16 @@ def locality(run: Path, param: str, delta: float = 0.3) -> dict:
 
     data = ViewDataset(scene, "test", with_texture=net.encoder is not None)
     b = {k: (v[None] if torch.is_tensor(v) else v) for k, v in data.frame_inputs(frame).items()}
-    face = b["face"] if b["face"].numel() else None
     sh = model_config(cfg).sh_degree
     lat = None
     if net.encoder is not None:
         lat = net.latents(b["texture"], None)[0]
+    batch = FrameBatch.from_dict(b, lat)
     outs = []
     for d in (0.0, delta):
-        pose = b["pose"].clone()
+        pose = batch.pose.clone()
         pose[0, slot] += d
-        outs.append(net(pose, b["root_rotation"], b["root_translation"], face, None, None, sh, True, latents=lat).avatar)
+        outs.append(net(batch._replace(pose=pose), sh_degree=sh).avatar)
     h = scene.hierarchy
     active_anchor = torch.from_numpy(scene.masks.pose[:, slot])
     region = active_anchor[torch.from_numpy(h.gauss_anchor_idx)].any(1)

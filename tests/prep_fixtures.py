@@ -115,5 +115,5 @@ def randomize_bases(avatar, seed: int = 5, std: float = 0.05) -> None:
     g = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for name, p in avatar.named_parameters():
-            if not name.startswith("mlp") and not name.endswith("_bias"):
+            if not name.startswith("pose_head.mlp") and not name.endswith("_bias"):
                 p.copy_(torch.randn(p.shape, generator=g) * std)

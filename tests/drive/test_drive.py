@@ -15,7 +15,9 @@ from gsavatar.data_schema import SchemaError, load_capture
 from gsavatar.drive.cli import main
 from gsavatar.drive.driver import DriveConfig, Driver, motion_inputs
 from gsavatar.drive.metrics import SequenceMetrics, measure_ramp_up, write_ramp_up
-from gsavatar.drive.motion import _joint_layouts, load_driving_motion, resample_motion
+from gsavatar.drive.motion import load_driving_motion
+from gsavatar.motion.resample import _joint_layouts, resample_motion
+from gsavatar.models.batch import FrameBatch
 from gsavatar.models.predictor import AppearancePredictor, PredictorConfig
 
 BVH = Path("/usr/share/assimp/models/BVH/01_01.bvh")
@@ -34,9 +36,9 @@ def tiny_run(tiny_dataset, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def loaded(tiny_run):
-    from gsavatar.train.runs import load_run
+    from gsavatar.runs.load import load_run
 
-    return load_run(tiny_run, "cpu")[:3]
+    return load_run(tiny_run, "cpu")
 
 
 def small_predictor(net, trained_init: bool = False) -> AppearancePredictor:
@@ -135,9 +137,9 @@ def test_load_motion_from_capture_npz_and_bvh(tiny_capture, tmp_path):
 
 # --------------------------------------------------------------------------- driver
 def test_streaming_equals_batch_and_render_afterwards(loaded, tiny_run, tiny_capture):
-    from gsavatar.train.trainer import render_views
+    from gsavatar.runs.views import render_views
 
-    net, scene, tcfg = loaded
+    net, scene, tcfg, _ = loaded
     pred = small_predictor(net)
     motion = load_driving_motion(tiny_capture, scene.capture.rig, scene.capture.fps, split="test")
     cfg = DriveConfig(mode="reinit", reinit_every=2, image_scale=0.25)
@@ -160,8 +162,9 @@ def test_streaming_equals_batch_and_render_afterwards(loaded, tiny_run, tiny_cap
     with torch.no_grad():
         for t, fr in enumerate(frames):
             x = motion_inputs(motion, t)
-            out = net(x.pose[None], x.root_rotation[None], x.root_translation[None], x.face[None], None, None,
-                      d.sh_degree, True, latents=ref[t][None])
+            batch = FrameBatch(x.pose[None], x.root_rotation[None], x.root_translation[None], x.face[None],
+                               latents=ref[t][None])
+            out = net(batch, sh_degree=d.sh_degree, correctives=True)
             col, _ = render_views(out.avatar, v.viewmat[None], v.K[None], v.width, v.height, torch.zeros(1, 3),
                                   d.sh_degree, tcfg.backend)
             torch.testing.assert_close(fr.images["full01"], col[0].clamp(0, 1).permute(1, 2, 0), rtol=0, atol=1e-6)
@@ -176,7 +179,7 @@ def test_streaming_equals_batch_and_render_afterwards(loaded, tiny_run, tiny_cap
 
 
 def test_bvh_orbit_driving_and_ramp_up(loaded, tiny_run, tiny_capture, tmp_path):
-    net, scene, _ = loaded
+    net, scene, _, _ = loaded
     pred = small_predictor(net, trained_init=True)
     if BVH.exists():
         m = load_driving_motion(BVH, scene.capture.rig, scene.capture.fps, start=1040, count=2)

@@ -7,6 +7,7 @@ import torch
 from gsavatar.geometry.rotations import axis_angle_to_matrix, orthonormalize, quat_to_matrix
 from gsavatar.models import GaussianAvatar, LearningRates, ModelConfig, model_preset, variant_config
 from gsavatar.models import gaussians as gm
+from gsavatar.models.pose_heads import UVDecoderHead
 from gsavatar.prep.localize import build_localization
 from gsavatar.prep.pca import fit_pose_pca
 from gsavatar.prep.sample_points import build_hierarchy
@@ -178,7 +179,7 @@ def test_variant_configs_and_presets():
 def test_mmlps_dagger_without_latents(prep):
     rig, h, *_ = prep
     av = make(prep, variant_config(model_preset("tiny"), "mmlps_dagger"))
-    assert av.mlp.in_dim == rig.pose_dim
+    assert av.pose_head.mlp.in_dim == rig.pose_dim
     out = av(*zeros(1, rig.pose_dim), latents=torch.randn(1, h.num_anchors, 16))  # ignored
     assert out.means.shape == (1, h.num_gaussians, 3)
 
@@ -249,7 +250,7 @@ def test_nrfgca_dagger_conv_uv_decoder(prep):
     cfg = variant_config(model_preset("tiny", uv_decoder_size=32, uv_decoder_channels=32), "nrfgca_dagger")
     assert (cfg.variant, cfg.pca, cfg.use_latent, cfg.local_pose) == ("conv_uv", "none", False, False)
     av = make(prep, cfg)
-    assert av.mlp is None and av.uv_decoder is not None and av.scale_basis.numel() == 0
+    assert isinstance(av.pose_head, UVDecoderHead) and av.scale_basis.numel() == 0
     pose = torch.randn(2, rig.pose_dim) * 0.3
     args = (pose, torch.zeros(2, 3), torch.zeros(2, 3))
     # the decoder's last conv starts at zero: the model starts as the bias-only avatar
@@ -258,12 +259,12 @@ def test_nrfgca_dagger_conv_uv_decoder(prep):
     groups = av.param_groups()
     assert sum(p.numel() for g in groups for p in g["params"]) == sum(p.numel() for p in av.parameters())
     with torch.no_grad():
-        av.uv_decoder.head.weight.normal_(0, 0.05)
+        av.pose_head.uv_decoder.head.weight.normal_(0, 0.05)
     out = av(*args)
     (out.means.square().mean() + out.sh.square().mean() + out.scales.mean()).backward()
     for name, p in av.named_parameters():
         assert p.grad is None or torch.isfinite(p.grad).all(), name
-    assert av.uv_decoder.fc.weight.grad.abs().sum() > 0
+    assert av.pose_head.uv_decoder.fc.weight.grad.abs().sum() > 0
     # no localization: one distant pose parameter moves Gaussians everywhere, unlike 'ours'
     slot = 0
     region = torch.from_numpy(masks.pose[:, slot])[torch.from_numpy(h.gauss_anchor_idx)].any(1)

@@ -168,15 +168,15 @@ def test_centred_correctives_vanish_at_the_mean_input(prep):
     # an input whose conditioning pose is the mean: coefficients exactly 0 (latents 0 = the mean latent)
     lat = torch.zeros(1, av.num_anchors, av.latent_in)
     mean_pose = av.pose_in_mean[None]
-    w = av.coefficients(mean_pose, None, lat)
+    w = av.pose_head.coefficients(av.anchor_inputs(mean_pose, None, lat))
     torch.testing.assert_close(w, torch.zeros_like(w), rtol=0, atol=1e-6)
     # elsewhere they are not, and the posed output differs from the bias-only avatar
-    w2 = av.coefficients(poses[:2], None, torch.randn(2, av.num_anchors, av.latent_in))
+    w2 = av.pose_head.coefficients(av.anchor_inputs(poses[:2], None, torch.randn(2, av.num_anchors, av.latent_in)))
     assert w2.abs().max() > 1e-3
     # without centring, the mean input gives the MLP's static output
     plain = make(prep, cfg.replace(center_correctives=False), randomize=True)
     plain.set_input_stats(poses)
     plain.train()
-    assert plain.coefficients(mean_pose, None, lat).abs().max() > 1e-3
+    assert plain.pose_head.coefficients(plain.anchor_inputs(mean_pose, None, lat)).abs().max() > 1e-3
     with pytest.raises(ValueError, match="input_norm"):
         make(prep, cfg.replace(input_norm=False)).set_input_stats(poses)

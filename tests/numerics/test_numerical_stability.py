@@ -3,8 +3,8 @@
 Each case is isolated (one hard Gaussian, one extreme parameter, one degenerate
 fit) and, where the right answer is known, the answer is asserted too. The
 random-scene finiteness checks already in tests/render/test_rasterize.py
-(``test_degenerate_inputs_stay_finite``), tests/train/test_losses.py (logvar ±50),
-tests/models/test_encoder.py (``kl_divergence`` at ±1e4) and tests/prep/test_pca.py
+(``test_degenerate_inputs_stay_finite``), tests/train/test_losses.py (``kl_loss`` at logvar ±50
+and ±1e4) and tests/prep/test_pca.py
 (constant / rank-1 groups, F < P) are not repeated here.
 
 Conventions: cameras are OpenCV (+z forward, +y down), ``viewmats`` are
@@ -16,25 +16,24 @@ factor; nothing here accumulates over many terms).
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 
-from gsavatar.data_schema.dataset import ShardSpec, ShardStore
+from gsavatar.data_schema.dataset import ShardSpec, ShardStore, stage_dir
+from gsavatar.data_schema.prepared import ProjectedTextures
+from gsavatar.data_schema.pose_pca import pca_project
 from gsavatar.data_schema.rig import BODY_GROUPS
+from gsavatar.geometry.rotations import quat_to_matrix
 from gsavatar.models import GaussianAvatar, model_preset
 from gsavatar.models import gaussians as gm
 from gsavatar.models.encoder import LOGVAR_RANGE, AppearanceEncoder, mask_texture, reparameterize, sample_at_uv
 from gsavatar.models.predictor import AppearancePredictor, PredictorConfig, fit_latent_pca, latent_pca_project
-from gsavatar.prep.common import stage_dir
 from gsavatar.prep.localize import build_localization
 from gsavatar.prep.pca import fit_pose_pca
 from gsavatar.prep.sample_points import build_hierarchy
 from gsavatar.render import project_gaussians, rasterize
-from gsavatar.render.projection import quat_to_rotmat
-from gsavatar.train.data import ViewDataset
 from gsavatar.train.losses import cpt_smoothness_loss, kl_loss, l1_loss, opacity_loss, scale_loss
 from prep_fixtures import arm_rig, arm_template, body_rig
 
@@ -227,12 +226,12 @@ QUAT_MAGNITUDES = {"zero": 0.0, "1e-30": 1e-30, "1e-8": 1e-8, "1e20": 1e20, "1e3
 def test_quaternion_magnitudes_in_the_renderer(mag, dtype):
     mag = torch.finfo(dtype).max / 8 if mag is None else mag
     q = (torch.tensor(UNIT, dtype=torch.float64) * mag).to(dtype).requires_grad_(True)
-    rot = quat_to_rotmat(q)
+    rot = quat_to_matrix(q)  # what the renderer's covariance uses
     (g,) = torch.autograd.grad((rot * torch.arange(9.0, dtype=dtype).reshape(3, 3)).sum(), q)
     assert_finite("R", rot, g)
-    if mag >= 1e20:  # R is scale invariant: the unit quaternion's rotation
-        torch.testing.assert_close(rot, quat_to_rotmat(torch.tensor(UNIT, dtype=dtype)), rtol=0, atol=RTOL[dtype])
-    elif mag <= 1e-8:  # |q|^2 <= 1e-12: treated as "no rotation"
+    if mag >= 1e-8:  # R is scale invariant (gsplat normalises q too): the unit quaternion's rotation
+        torch.testing.assert_close(rot, quat_to_matrix(torch.tensor(UNIT, dtype=dtype)), rtol=0, atol=RTOL[dtype])
+    else:  # |q| <= 1e-12: treated as "no rotation"
         torch.testing.assert_close(rot, torch.eye(3, dtype=dtype), rtol=0, atol=1e-3)
     if mag == 0.0:
         assert torch.equal(rot, torch.eye(3, dtype=dtype)) and (g == 0).all()
@@ -314,7 +313,7 @@ def test_avatar_render_loss_backward_is_finite(arm_avatar_parts, case):
     g = torch.Generator().manual_seed(1)
     with torch.no_grad():
         for name, p in av.named_parameters():  # non-zero correctives: the MLP path matters
-            if not name.startswith("mlp") and not name.endswith("_bias"):
+            if not name.startswith("pose_head.mlp") and not name.endswith("_bias"):
                 p.copy_(torch.randn(p.shape, generator=g) * 0.05)
         for name, v in overrides.items():
             getattr(av, name).fill_(v)
@@ -369,14 +368,14 @@ def _fp16_texture(fill, S=64) -> np.ndarray:
 @pytest.mark.parametrize("fill", list(TEXTURES.values()), ids=list(TEXTURES))
 def test_fp16_textures_through_loader_encoder_and_losses(tmp_path, fill):
     # Store two frames as an fp16 project-uv shard and read them back the way the
-    # training data set does (ViewDataset._load_texture: fp16 -> float32, exact; its fp16 cache is exact too).
+    # training data set does (ProjectedTextures: fp16 -> float32, exact; ViewDataset's fp16 cache is exact too).
     tex16 = np.stack([_fp16_texture(fill), _fp16_texture(None)])
     store = ShardStore(stage_dir(tmp_path, "project-uv"), "project-uv")
     spec = ShardSpec(0, [0, 1])
     store.write(spec, {"texture": tex16}, "test")
     store.merge_manifest([spec])
-    reader = SimpleNamespace(_tex=None, scene=SimpleNamespace(dataset=tmp_path), texture_source="projected")
-    tex = [ViewDataset._load_texture(reader, f) for f in (0, 1)]
+    reader = ProjectedTextures(tmp_path)
+    tex = [reader.get(f) for f in (0, 1)]
     assert all(t.dtype == np.float32 for t in tex)
     np.testing.assert_array_equal(tex[0], tex16[0].astype(np.float32))  # max and subnormals survive
 
@@ -384,7 +383,9 @@ def test_fp16_textures_through_loader_encoder_and_losses(tmp_path, fill):
     enc = AppearanceEncoder(latent_dim=4).train()
     x = torch.from_numpy(np.stack(tex)).permute(0, 3, 1, 2).contiguous()  # [2, 3, S, S]
     x = mask_texture(x, torch.zeros(8, 8, dtype=torch.bool).index_fill_(0, torch.tensor([0]), True))
-    o = enc(x, generator=torch.Generator().manual_seed(0))
+    grid = [n // enc.downsample for n in x.shape[-2:]]
+    eps = torch.randn(x.shape[0], 4, *grid, generator=torch.Generator().manual_seed(0))
+    o = enc(x, eps)
     assert_finite("encoder", o.latent_map, o.mu, o.logvar)
     z = sample_at_uv(o.latent_map, torch.rand(7, 2, generator=torch.Generator().manual_seed(1)))
     loss = kl_loss(o.mu, o.logvar) + l1_loss(x, torch.zeros_like(x)) + z.square().mean()
@@ -452,10 +453,10 @@ def test_kl_loss_exact_up_to_50_and_continuous_beyond():
 def test_reparameterize_at_extreme_logvar(lv):
     mu = torch.randn(2, 4, 3, 3, requires_grad=True)
     logvar = torch.full((2, 4, 3, 3), lv, requires_grad=True)
-    z = reparameterize(mu, logvar, torch.Generator().manual_seed(0))
+    eps = torch.randn(mu.shape, generator=torch.Generator().manual_seed(0))
+    z = reparameterize(mu, logvar, eps)
     g_mu, g_lv = torch.autograd.grad((z * torch.randn_like(z)).sum(), [mu, logvar])
     assert_finite("reparameterize", z, g_mu, g_lv)
-    eps = torch.randn(mu.shape, generator=torch.Generator().manual_seed(0))
     std = math.exp(0.5 * min(lv, LOGVAR_RANGE[1]))
     torch.testing.assert_close(z, mu.detach() + std * eps, rtol=1e-6, atol=1e-6 * std)
 
@@ -466,7 +467,7 @@ def test_encoder_with_extreme_logvar_head(bias):
     enc = AppearanceEncoder(latent_dim=4).train()
     with torch.no_grad():
         enc.logvar_head.bias.fill_(bias)
-    o = enc(torch.rand(2, 3, 64, 64), generator=torch.Generator().manual_seed(0))
+    o = enc(torch.rand(2, 3, 64, 64), torch.randn(2, 4, 2, 2, generator=torch.Generator().manual_seed(0)))
     assert_finite("encoder", o.latent_map, o.mu, o.logvar)
     assert (o.logvar >= LOGVAR_RANGE[0]).all() and (o.logvar <= LOGVAR_RANGE[1]).all()
     loss = kl_loss(o.mu, o.logvar) + o.latent_map.square().mean()
@@ -537,7 +538,7 @@ def test_rank_deficient_pose_pca_is_finite_and_differentiable(case, mode):
     # The avatar's conditioning path (float32 buffers), with gradients.
     pose = torch.tensor(x, dtype=torch.float32, requires_grad=True)
     f32 = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
-    out = gm.pca_project(pose, f32(pca.mean), f32(pca.basis), f32(pca.clamp_sigma * pca.sigma))
+    out = pca_project(pose, f32(pca.mean), f32(pca.basis), f32(pca.clamp_sigma * pca.sigma))
     (g,) = torch.autograd.grad((out * torch.linspace(-1, 1, out.shape[1])).sum(), pose)
     assert_finite("pca_project", out, g)
     if pca.num_components == 0:

@@ -3,9 +3,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gsavatar.data_schema.errors import SchemaError
+from gsavatar.data_schema.localization import LocalizationMasks
 from gsavatar.prep.localize import (
-    LocalizationMasks,
     active_per_point,
     build_localization,
     dilate_mask,
@@ -16,6 +15,7 @@ from gsavatar.prep.localize import (
     pose_masks,
     wrist_joint_of_group,
 )
+from gsavatar.utils.errors import SchemaError
 from gsavatar.prep.sample_points import build_hierarchy
 from prep_fixtures import arm_rig, arm_template
 

@@ -4,9 +4,10 @@ import numpy as np
 import pytest
 import torch
 
-from gsavatar.data_schema.errors import SchemaError
+from gsavatar.data_schema.pose_pca import PosePCA
 from gsavatar.data_schema.rig import BODY_GROUPS
-from gsavatar.prep.pca import PosePCA, fit_pose_pca
+from gsavatar.prep.pca import fit_pose_pca
+from gsavatar.utils.errors import SchemaError
 from prep_fixtures import body_rig
 
 

@@ -470,7 +470,7 @@ def test_vertex_normals_plane():
 # --------------------------------------------------------------------------- loading
 def test_load_frame_views_roundtrip(tmp_path):
     from gsavatar.data_schema.capture import Capture
-    from gsavatar.data_schema.errors import SchemaError
+    from gsavatar.utils.errors import SchemaError
     from gsavatar.utils.io import write_image
 
     V, F, C = quad((0, 0, 0), 1.0, (0, 0), (1, 1))

@@ -8,7 +8,7 @@ import pytest
 
 from gsavatar.data_schema import load_capture
 from gsavatar.data_schema.dataset import ShardReader, read_dataset_json
-from gsavatar.prep.report import load_gt_texture
+from gsavatar.data_schema.prepared import load_gt_texture
 from gsavatar.prep.stages import load_atlas
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])

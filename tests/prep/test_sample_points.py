@@ -3,9 +3,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gsavatar.data_schema.errors import SchemaError
+from gsavatar.data_schema.hierarchy import Hierarchy
 from gsavatar.prep.sample_points import (
-    Hierarchy,
     _fps_numpy,
     build_hierarchy,
     farthest_point_sampling,
@@ -14,6 +13,7 @@ from gsavatar.prep.sample_points import (
     sample_surface,
     transfer_skin_weights,
 )
+from gsavatar.utils.errors import SchemaError
 from prep_fixtures import RADIUS, X0, X1, arm_template
 
 

@@ -28,7 +28,7 @@ from typing import NamedTuple
 import numpy as np
 import pytest
 
-from gsavatar.data_schema.errors import SchemaError
+from gsavatar.utils.errors import SchemaError
 from gsavatar.data_schema.limits import MAX_RESAMPLED_FRAMES
 from gsavatar.drive.cli import main as drive_main
 from gsavatar.prep.cli import main as prep_main
@@ -498,7 +498,7 @@ def test_driving_motion_reads_only_its_arrays(tmp_path, tiny_capture):
 
 
 def test_train_config_round_trips_through_json():
-    from gsavatar.train.config import TrainConfig, from_json, resolve, to_json
+    from gsavatar.runs.config import TrainConfig, from_json, resolve, to_json
 
     cfg = resolve(TrainConfig(dataset=Path("ds"), out=Path("run"), lpips_weights=Path("w.pth"), image_scale=0.5))
     assert from_json(json.loads(json.dumps(to_json(cfg))), "config.json") == cfg
@@ -507,7 +507,7 @@ def test_train_config_round_trips_through_json():
 
 
 def test_resampling_is_bounded():
-    from gsavatar.drive.motion import resample_times
+    from gsavatar.motion.resample import resample_times
 
     with pytest.raises(ValueError, match="more than"):
         resample_times(14_000, 1.0, 15.0)

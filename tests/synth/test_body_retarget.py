@@ -1,15 +1,13 @@
 """Anny body (Template + Rig) and CMU BVH retargeting onto it.
 
 The body tests need the ``anny`` package; the first run builds Anny's model data into
-``/work/main/.cache/anny`` (or ``$GSAVATAR_ANNY_CACHE``): ~70-80 s and ~0.7 GB, later
+``$ANNY_CACHE_DIR`` (default ``<repo>/.cache/anny``, tests/conftest.py): ~70-80 s and ~0.7 GB, later
 runs reuse it (< 1 s). The retargeting tests without anny use a rig made from the BVH
 skeleton itself, re-posed into an A-pose so that the rest alignment is exercised.
 """
 
 from __future__ import annotations
 
-import os
-import time
 from pathlib import Path
 
 import numpy as np
@@ -19,11 +17,12 @@ import torch
 from gsavatar.data_schema.rig import BODY_GROUPS
 from gsavatar.data_schema.template import validate_template
 from gsavatar.geometry.lbs import lbs, pose_joints, pose_to_local_rotations, skinning_transforms
-from gsavatar.synth.bvh import bvh_joint_positions, bvh_rest_positions, read_bvh
-from gsavatar.synth.retarget import CMU_NAME_MAP, motion_from_bvh_file, retarget_bvh
+from gsavatar.motion.bvh import bvh_joint_positions, bvh_rest_positions, read_bvh
+from gsavatar.motion.retarget import CMU_NAME_MAP, motion_from_bvh_file, retarget_bvh
+from conftest import anny_cache_dir
 
 CMU_01_01 = Path("/usr/share/assimp/models/BVH/01_01.bvh")
-ANNY_CACHE = Path(os.environ.get("GSAVATAR_ANNY_CACHE", Path(__file__).resolve().parents[2] / ".cache" / "anny"))
+ANNY_CACHE = anny_cache_dir()
 DECIMATE = 3000
 
 # (parent, child) bones whose direction must follow the mocap
@@ -49,11 +48,9 @@ def anny_body():
     from gsavatar.synth.body import build_anny_body
 
     ANNY_CACHE.mkdir(parents=True, exist_ok=True)
-    os.environ["ANNY_CACHE_DIR"] = str(ANNY_CACHE)
-    t0 = time.time()
     full = build_anny_body(ANNY_CACHE)
     dec = build_anny_body(ANNY_CACHE, decimate_to=DECIMATE)
-    return {"full": full, "dec": dec, "build_s": time.time() - t0}
+    return {"full": full, "dec": dec}
 
 
 def _bone_cos(P_ours, names, Pb, bvh, bones, name_map=CMU_NAME_MAP):
@@ -157,12 +154,11 @@ def test_decimated_template(anny_body):
     assert t.face_uv_mask is not None and t.face_uv_mask.sum() == full.face_uv_mask.sum()
 
 
-def test_body_cache_is_fast(anny_body):
+def test_body_cache_returns_the_same_body(anny_body):
+    # How fast a cached body loads is not asserted here (timings live in benchmarks/).
     from gsavatar.synth.body import build_anny_body
 
-    t0 = time.time()
     t, rig = build_anny_body(ANNY_CACHE, decimate_to=DECIMATE)
-    assert time.time() - t0 < 2.0
     assert len(t.vertices) == len(anny_body["dec"][0].vertices)
     np.testing.assert_array_equal(rig.heads(), anny_body["dec"][1].heads())
 

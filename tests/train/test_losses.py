@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
+from gsavatar.runs.config import LossWeights
 from gsavatar.train.losses import (
-    LossWeights,
     cpt_smoothness_loss,
     erode_mask,
     kl_loss,
@@ -135,6 +135,22 @@ def test_kl_finite_at_extreme_logvar(lv):
     v.backward()
     assert torch.isfinite(v) and v.item() > 0
     assert torch.isfinite(logvar.grad).all() and torch.isfinite(mu.grad).all()
+
+
+def test_kl_against_float64_oracle():
+    # The one KL of the code base (the encoder has none): per sample the sum over every latent element, then
+    # the mean over the batch, the scale the paper's 1e-6 weight is applied to in training.
+    g = torch.Generator().manual_seed(0)
+    mu, logvar = torch.randn(3, 16, 4, 4, generator=g), torch.randn(3, 16, 4, 4, generator=g) * 3
+    m, lv = mu.double(), logvar.double()
+    want = (0.5 * (m * m + lv.exp() - 1.0 - lv)).flatten(1).sum(1).mean()
+    torch.testing.assert_close(kl_loss(mu, logvar).double(), want, rtol=1e-6, atol=0)
+    # one element: 0.5 * (mu^2 + e^lv - 1 - lv); a 1-D input is one sample per element
+    assert kl_loss(torch.tensor([1.0]), torch.tensor([0.0])).item() == pytest.approx(0.5, abs=1e-7)
+    for lv in (1e4, -1e4):  # finite value and gradient far outside the encoder's clamped range
+        x = torch.full((2, 4, 3, 3), lv, requires_grad=True)
+        kl_loss(mu[:2, :4, :3, :3], x).backward()
+        assert torch.isfinite(x.grad).all()
 
 
 def test_total_loss_weights_and_logs():

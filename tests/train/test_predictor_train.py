@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from gsavatar.models.predictor import AppearancePredictor, PredictorConfig
+from gsavatar.runs.load import predictor_from_checkpoint
 from gsavatar.train.predictor import (
     PredictorTrainConfig,
     PredictorTrainer,
@@ -17,7 +18,6 @@ from gsavatar.train.predictor import (
     dual_context_loss,
     evaluate_predictor,
     history_index,
-    predictor_from_checkpoint,
     prepare_model,
     split_segments,
     temporal_l1_terms,

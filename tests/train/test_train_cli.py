@@ -126,7 +126,8 @@ def test_checkpoint_of_another_config_is_refused(tiny_dataset, tmp_path, capsys)
 
 
 def test_eval_reports_the_latent_gain_and_it_is_zero_when_latents_are_cut(tiny_dataset, tmp_path):
-    from gsavatar.train.runs import evaluate_run, load_run
+    from gsavatar.runs.load import load_run
+    from gsavatar.train.runs import evaluate_run
 
     run = tmp_path / "ours"
     assert main(["avatar", "--dataset", str(tiny_dataset), *FAST, "--steps", "2", "--correctives-step", "0",
@@ -135,18 +136,20 @@ def test_eval_reports_the_latent_gain_and_it_is_zero_when_latents_are_cut(tiny_d
     res = json.loads((run / "eval" / "metrics.json").read_text())
     gain = res["test_frames_heldout_cams"]["psnr_fg"] - res["test_frames_heldout_cams_mean_latent"]["psnr_fg"]
     assert res["latent_gain_db"] == pytest.approx(gain)
-    net, scene, cfg, _ = load_run(run, "cpu")
+    loaded = load_run(run, "cpu")
+    net = loaded.net
     L = net.avatar.latent_in
     with torch.no_grad():
-        net.avatar.mlp.weights[0][:, -L:] = 0  # the anchor MLPs no longer see the latent
-    res = evaluate_run(tmp_path / "cut", 1, loaded=(net, scene, cfg))
+        net.avatar.pose_head.mlp.weights[0][:, -L:] = 0  # the anchor MLPs no longer see the latent
+    res = evaluate_run(tmp_path / "cut", 1, loaded=loaded)
     assert res["latent_gain_db"] == pytest.approx(0.0, abs=1e-9)
 
 
 def test_encoder_is_untouched_until_the_correctives_switch_on(tiny_dataset, tmp_path):
     # Before the correctives the latent has no effect; a KL term alone would pull the posterior to the prior.
-    from gsavatar.train.trainer import build_net, model_config
-    from gsavatar.train.runs import load_run
+    from gsavatar.models.net import build_net
+    from gsavatar.runs.config import model_config
+    from gsavatar.runs.load import load_run
 
     run = tmp_path / "r"
     assert main(["avatar", "--dataset", str(tiny_dataset), *FAST, "--steps", "3", "--correctives-step", "100",
@@ -159,8 +162,9 @@ def test_encoder_is_untouched_until_the_correctives_switch_on(tiny_dataset, tmp_
 
 
 def test_oracle_run_reads_ground_truth_albedo_and_eval_reports_frame_dependence(tiny_dataset, tmp_path):
-    from gsavatar.prep.project_uv import resize_face_mask
-    from gsavatar.train.data import ViewDataset, load_scene
+    from gsavatar.data_schema.prepared import resize_face_mask
+    from gsavatar.data_schema.prepared import load_scene
+    from gsavatar.train.data import ViewDataset
     from gsavatar.utils.io import read_image
 
     run = tmp_path / "oracle"

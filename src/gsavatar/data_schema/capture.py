@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gsavatar.data_schema.errors import SchemaError
+from gsavatar.utils.errors import SchemaError
 from gsavatar.data_schema.rig import Rig, load_rig
 from gsavatar.data_schema.template import Template, load_template
 from gsavatar.data_schema.limits import check_fps

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gsavatar.data_schema.errors import SchemaError
+from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.io import NPZ_READ_ERRORS, atomic_path, atomic_write_json, sha256_file
 from gsavatar.utils.jsonio import read_json
 
@@ -181,6 +181,11 @@ def stage_complete(root: Path, stage: str, config: dict | None = None, check_fil
                    inputs: dict[str, str] | None = None) -> bool:
     """True if ``stage`` is recorded with the current version (and config and inputs), and its files verify."""
     return stage_status(root, stage, config, inputs, check_files) is None
+
+
+def stage_dir(root: Path, stage: str) -> Path:
+    """Folder of a stage's outputs (``fit-pca`` -> ``DATASET/fit_pca``)."""
+    return Path(root) / stage.replace("-", "_")
 
 
 def stage_path(root: Path, stage: str, name: str) -> Path:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from gsavatar.data_schema.errors import SchemaError
+from gsavatar.utils.errors import SchemaError
 
 MIN_FPS = 1.0
 """Lowest accepted frame rate (frames per second) of a motion: below it consecutive frames are too far

@@ -23,7 +23,7 @@ from typing import Literal
 
 import numpy as np
 
-from gsavatar.data_schema.errors import SchemaError
+from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.jsonio import is_number, read_json
 from gsavatar.utils.paths import check_name
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gsavatar.data_schema.errors import SchemaError
+from gsavatar.utils.errors import SchemaError
 
 
 @dataclass

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 import tyro
 
+from gsavatar.data_schema.views import UndistortMaps
 from gsavatar.drive.driver import DriveConfig, Driver, load_predictor_for, motion_inputs, texture_source
 from gsavatar.utils.cli import run_reporting_errors
 from gsavatar.utils.io import atomic_path, atomic_save_npz, atomic_write_json, write_image
@@ -105,15 +106,15 @@ def drive(args: DriveArgs) -> dict:
 
     from gsavatar.drive.metrics import SequenceMetrics, load_ground_truth, measure_ramp_up, write_ramp_up
     from gsavatar.drive.motion import load_driving_motion
-    from gsavatar.train.runs import load_run
+    from gsavatar.runs.load import load_run
     from gsavatar.utils.progress import progress_bar
 
     cfg = args.config()
     if args.motion_fps < 0 or args.count < 0 or args.ramp_up < 0:
         raise ValueError("motion_fps, count and ramp_up must be >= 0")
-    loaded = load_run(args.run, cfg.device)[:3]
+    loaded = load_run(args.run, cfg.device)
     predictor = "auto"
-    if loaded[0].avatar.latent_in and (cfg.mode != "encoder" or args.ramp_up):
+    if loaded.net.avatar.latent_in and (cfg.mode != "encoder" or args.ramp_up):
         predictor = load_predictor_for(args.run)
     d = Driver(args.run, cfg, loaded=loaded, predictor=predictor)
     scene = d.scene
@@ -133,6 +134,7 @@ def drive(args: DriveArgs) -> dict:
     textures = texture_source(motion, scene, cfg.textures) if d.needs_textures else None
     lp, lp_name = _lpips(args.lpips, d.device) if gt is not None else (None, "off")
     acc = SequenceMetrics(lp)
+    maps = UndistortMaps()  # undistortion tables of the ground-truth cameras, built once for the sequence
     out = claim_output_dir(Path(args.out), "drive", args.force, register=True)
     cams = [v.name for v in d.views]
     T = motion.num_frames
@@ -150,7 +152,7 @@ def drive(args: DriveArgs) -> dict:
                     cams = [v.name for v in d.views]  # orbit views are placed by start()
                 fr = d.step(x)
                 latents.append(fr.latents.numpy())
-                gts = load_ground_truth(gt.capture, gt.frames[t], cams, cfg.image_scale, d.bg) if gt is not None else {}
+                gts = load_ground_truth(gt.capture, gt.frames[t], cams, cfg.image_scale, d.bg, maps) if gt is not None else {}
                 for c in cams:
                     g = gts.get(c)
                     acc.add(t, c, fr.images[c], fr.alphas[c], None if g is None else g[0], None if g is None else g[1])

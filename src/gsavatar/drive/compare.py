@@ -58,7 +58,8 @@ def _panel(img: torch.Tensor, height: int, text: str, min_width: int = 220) -> n
 
 @torch.no_grad()
 def compare(args: CompareArgs) -> dict:
-    from gsavatar.train.runs import load_run, mean_train_latent
+    from gsavatar.runs.latents import mean_train_latent
+    from gsavatar.runs.load import load_run
 
     sources: dict[str, np.ndarray] = {}
     for spec in args.drive:

@@ -28,7 +28,6 @@ Models without appearance latents (MMLPs-dagger) render from pose alone in any m
 from __future__ import annotations
 
 import dataclasses
-import importlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,7 +38,14 @@ import torch
 from torch import Tensor
 
 from gsavatar.data_schema import Capture, SchemaError
+from gsavatar.data_schema.dataset import read_dataset_json
+from gsavatar.data_schema.prepared import ProjectedTextures
+from gsavatar.data_schema.views import scaled_camera
 from gsavatar.drive.motion import DrivingMotion
+from gsavatar.models.batch import FrameBatch
+from gsavatar.runs.config import model_config
+from gsavatar.runs.load import LoadedRun, load_run, predictor_from_checkpoint, run_predictor_path
+from gsavatar.runs.views import orbit_cameras, render_views
 
 DriveMode = Literal["predictor", "predictor_encoder_init", "reinit", "encoder", "pose_init"]
 ENCODER_MODES = ("predictor_encoder_init", "reinit", "encoder")
@@ -110,6 +116,12 @@ class FrameInputs(NamedTuple):
     texture: Tensor | None = None
     """Projected UV texture in [0, 1], needed by the encoder modes on init frames.  # [3, S, S]"""
 
+    def batch(self, latents: Tensor | None) -> FrameBatch:
+        """This frame as a batch of one for the net, with given latents ``[A, L]`` (None: the model has none)."""
+        return FrameBatch(self.pose[None], self.root_rotation[None], self.root_translation[None],
+                          None if self.face is None else self.face[None], None,
+                          None if latents is None else latents[None])
+
 
 class View(NamedTuple):
     name: str
@@ -135,17 +147,14 @@ class DriveFrame(NamedTuple):
 def load_predictor_for(run: Path, device: str | torch.device = "cpu"):
     """The run's trained appearance predictor (``RUN/predictor/latest.pt`` of ``avatar-train predictor``),
     or None when the run has none."""
-    ckpt = Path(run) / "predictor" / "latest.pt"
+    ckpt = run_predictor_path(run)
     if not ckpt.exists():
         return None
-    mod = importlib.import_module("gsavatar.train.predictor")
-    return mod.predictor_from_checkpoint(ckpt, device)
+    return predictor_from_checkpoint(ckpt, device)
 
 
 def capture_views(capture: Capture, names: tuple[str, ...] | list[str], image_scale: float) -> list[View]:
     """Calibrated (undistorted, resized) views of ``names`` (empty: test cameras, else train)."""
-    from gsavatar.train.data import scaled_camera
-
     if not names:
         names = (capture.splits["test"] if "test" in capture.splits else capture.splits["train"]).cameras
     unknown = [n for n in names if n not in capture.cameras]
@@ -170,9 +179,6 @@ def motion_inputs(motion: DrivingMotion, t: int, texture: Tensor | None = None) 
 
 def texture_source(motion: DrivingMotion, scene, textures: Path | None) -> Callable[[int], Tensor]:
     """Driving frame t -> projected UV texture [3, S, S] of its ground-truth capture frame."""
-    from gsavatar.data_schema.dataset import ShardReader, read_dataset_json
-    from gsavatar.prep.common import stage_dir
-
     if motion.gt is None:
         raise ValueError("the encoder modes need projected UV textures of the driving frames: drive with a capture "
                          "directory (at its own frame rate, or an integer multiple of it)")
@@ -185,11 +191,11 @@ def texture_source(motion: DrivingMotion, scene, textures: Path | None) -> Calla
     meta_cap = read_dataset_json(ds).get("capture")
     if not meta_cap or Path(meta_cap).resolve() != cap_root:
         raise SchemaError(ds / "dataset.json", "capture", f"is {meta_cap!r}, not the driving capture {cap_root}")
-    reader = ShardReader(stage_dir(ds, "project-uv"))
+    textures = ProjectedTextures(ds)
     frames = motion.gt.frames
 
     def get(t: int) -> Tensor:
-        return torch.from_numpy(reader.get(frames[t])["texture"].astype(np.float32)).permute(2, 0, 1).contiguous()
+        return torch.from_numpy(textures.get(frames[t])).permute(2, 0, 1).contiguous()
 
     return get
 
@@ -200,20 +206,17 @@ class Driver:
     Args:
         run: run directory of ``avatar-train avatar``.
         config: :class:`DriveConfig`.
-        loaded: ``(net, scene, train_cfg)`` of :func:`gsavatar.train.runs.load_run`, to skip reloading.
+        loaded: the run as :func:`gsavatar.runs.load_run` returns it, to skip reloading.
         predictor: the appearance predictor (``init_state``/``step``/``initial_latents``); ``"auto"``
             loads the run's; None: none (only the ``encoder`` mode, or models without latents).
         camera_capture: capture whose calibrated cameras render (default: the run's capture).
     """
 
-    def __init__(self, run: str | Path, config: DriveConfig | None = None, *, loaded: tuple | None = None,
+    def __init__(self, run: str | Path, config: DriveConfig | None = None, *, loaded: LoadedRun | None = None,
                  predictor="auto", camera_capture: Capture | None = None) -> None:
-        from gsavatar.train.runs import load_run
-        from gsavatar.train.trainer import model_config
-
         self.config = cfg = config if config is not None else DriveConfig()
         self.run = Path(run)
-        net, scene, tcfg = loaded if loaded is not None else load_run(self.run, cfg.device)[:3]
+        net, scene, tcfg, _ = loaded if loaded is not None else load_run(self.run, cfg.device)
         self.net, self.scene, self.train_cfg = net.eval(), scene, tcfg
         self.device = next(net.parameters()).device
         self.sh_degree = model_config(tcfg).sh_degree
@@ -300,11 +303,7 @@ class Driver:
         m = self.config.mode
         self.t, self.state, self._first_given, self._init_latents = 0, None, False, None
         if self.config.cameras == "orbit":
-            from gsavatar.train.runs import orbit_cameras
-
-            out = self.net(x.pose[None], x.root_rotation[None], x.root_translation[None],
-                           None if x.face is None else x.face[None], None, None, self.sh_degree, True,
-                           latents=self._zeros()[None] if self.has_latents else None)
+            out = self.net(x.batch(self._zeros() if self.has_latents else None), sh_degree=self.sh_degree)
             center = out.avatar.means[0].mean(0).cpu().double().numpy()
             s = self.config.orbit_size
             vms, Ks = orbit_cameras(center, self.config.orbit_radius, self.config.orbit_height, self.config.orbit_views, s, s)
@@ -342,11 +341,7 @@ class Driver:
     @torch.no_grad()
     def render(self, x: FrameInputs, latents: Tensor) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
         """Render checked inputs with latents [A, L] from every view -> ({cam: [H,W,3]}, {cam: [H,W]}) on cpu."""
-        from gsavatar.train.trainer import render_views
-
-        lat = latents[None].to(self.device) if self.has_latents else None
-        out = self.net(x.pose[None], x.root_rotation[None], x.root_translation[None],
-                       None if x.face is None else x.face[None], None, None, self.sh_degree, True, latents=lat)
+        out = self.net(x.batch(latents.to(self.device) if self.has_latents else None), sh_degree=self.sh_degree)
         images, alphas = {}, {}
         for v in self.views:
             col, alp = render_views(out.avatar, v.viewmat[None].to(self.device), v.K[None].to(self.device), v.width,

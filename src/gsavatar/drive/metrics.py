@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from gsavatar.data_schema.views import UndistortMaps, load_view, scaled_camera
 from gsavatar.utils.io import atomic_write_json, write_image
 
 _COLORS = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75)]  # RGB
@@ -156,15 +157,15 @@ def line_plot(series: dict[str, list[float]], title: str, xlabel: str, ylabel: s
 
 # --------------------------------------------------------------------------- sequences
 def load_ground_truth(capture, frame: int, cameras: list[str], image_scale: float,
-                      background: Tensor) -> dict[str, tuple[Tensor, Tensor]]:
+                      background: Tensor, maps: UndistortMaps | None = None) -> dict[str, tuple[Tensor, Tensor]]:
     """GT of one capture frame per camera, undistorted/resized like the driver's views.
+    ``maps``: undistortion tables to reuse over a sequence (None: built for this call).
     -> {cam: (image on background [H,W,3], mask [H,W])}"""
-    from gsavatar.train.data import load_view, scaled_camera
-
     out = {}
     for cam in cameras:
         geo = scaled_camera(capture.cameras[cam], image_scale)
-        img, msk = load_view(capture.cameras[cam], capture.image_path(cam, frame), capture.mask_path(cam, frame), geo)
+        img, msk = load_view(capture.cameras[cam], capture.image_path(cam, frame), capture.mask_path(cam, frame), geo,
+                             maps)
         im, mk = torch.from_numpy(img).permute(2, 0, 1), torch.from_numpy(msk)[None]
         out[cam] = (composite(im, mk, background.cpu()).permute(1, 2, 0).contiguous(), mk[0])
     return out
@@ -243,7 +244,8 @@ def measure_ramp_up(driver, motion, textures, frames: int = 30,
     inputs = [motion_inputs(motion, t, textures(t)) for t in range(n)]
     targets = [driver.encode(x.texture).cpu() for x in inputs]
     cams = [v.name for v in driver.views]
-    gts = [load_ground_truth(motion.gt.capture, motion.gt.frames[t], cams, driver.config.image_scale, driver.bg)
+    maps = UndistortMaps()
+    gts = [load_ground_truth(motion.gt.capture, motion.gt.frames[t], cams, driver.config.image_scale, driver.bg, maps)
            for t in range(n)] if with_images and driver.config.cameras == "capture" else None
     result: dict = {"frames": n, "fps": motion.fps, "cameras": cams, "modes": {}, "skipped": {}}
     for mode in modes:

@@ -6,12 +6,38 @@ world position. Root motion: ``world = R_root (x - head_root) + head_root + t_ro
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Protocol
+
 import numpy as np
 import torch
 from torch import Tensor
 
-from gsavatar.data_schema.rig import Rig
 from gsavatar.geometry.rotations import axis_angle_to_matrix
+
+
+class RigParam(Protocol):
+    """One pose parameter of a rig (:class:`gsavatar.data_schema.rig.PoseParam` has this shape)."""
+
+    joint: str
+    kind: str  # "euler" (one angle about ``axis``) or "axis_angle" (three slots)
+    axis: Sequence[float]  # [3] unit axis of an euler parameter
+    size: int  # pose slots: 1 (euler) or 3 (axis_angle)
+
+
+class Rig(Protocol):
+    """What the kinematics below read from a rig. :class:`gsavatar.data_schema.rig.Rig` is one; geometry sits
+    below data_schema (docs/architecture.md), so it names the shape it needs instead of importing the type."""
+
+    params: Sequence[RigParam]
+    num_joints: int
+    pose_dim: int
+
+    def heads(self) -> np.ndarray: ...  # [J, 3] rest joint positions, metres
+
+    def parents(self) -> np.ndarray: ...  # [J] int, -1 for the root
+
+    def joint_index(self, name: str) -> int: ...
 
 
 class RigTensors:

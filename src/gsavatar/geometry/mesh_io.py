@@ -13,7 +13,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from gsavatar.data_schema.errors import SchemaError
+from gsavatar.utils.errors import SchemaError
 
 
 class ObjMesh(NamedTuple):

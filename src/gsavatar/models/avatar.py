@@ -1,9 +1,10 @@
-"""The drivable Gaussian avatar: anchor MLPs + per-Gaussian corrective bases (supp. A).
+"""The drivable Gaussian avatar: a pose head + per-Gaussian biases and corrective bases (supp. A).
 
 :class:`GaussianAvatar` only holds parameters and constant buffers; the math lives
-in :mod:`gsavatar.models.gaussians`.
+in :mod:`gsavatar.models.gaussians`, the pose-dependent part in its pose head
+(:mod:`gsavatar.models.pose_heads`, chosen once from ``ModelConfig.variant``).
 
-Per frame, every anchor MLP maps ``[θ̂_i, φ̂_i, l_i]`` (masked conditioning pose,
+Per frame (pose head ``ours``), every anchor MLP maps ``[θ̂_i, φ̂_i, l_i]`` (masked conditioning pose,
 masked face embedding, appearance latent) to ``n_basis`` Gaussian and
 ``n_ctrl_basis`` control-point coefficients. Gaussians and control points
 interpolate them from their 3 nearest anchors. Gaussian properties
@@ -26,9 +27,10 @@ Canonical Gaussian centre = rest position + 3-NN interpolated control displaceme
 *raw* driving pose (PCA only shapes the MLP input). Posed rotation =
 ``polar(blended 3x3) @ R(q)``.
 
-Variant ``conv_uv`` (nRFGCA-dagger) has no anchor MLPs and no bases: a convolutional UV
-decoder of the full pose (:mod:`gsavatar.models.uv_decoder`) gives every Gaussian its
-pre-activation deltas of position, scale, rotation and SH directly, added to the same biases.
+Every pose head outputs pre-activation deltas (:class:`~gsavatar.models.pose_heads.PoseDeltas`),
+added to the same biases: ``<w, ΔΛ>`` for the anchor-MLP heads (``ours``, ``mmlps``); the
+``conv_uv`` head (nRFGCA-dagger) has no anchor MLPs and no bases, its convolutional UV decoder
+of the full pose gives every Gaussian its deltas of position, scale, rotation and SH directly.
 """
 
 from __future__ import annotations
@@ -39,16 +41,14 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from gsavatar.data_schema.hierarchy import Hierarchy
+from gsavatar.data_schema.localization import LocalizationMasks
+from gsavatar.data_schema.pose_pca import PosePCA, pca_project
 from gsavatar.data_schema.rig import BODY_GROUPS, Rig
 from gsavatar.geometry.lbs import RigTensors, skinning_transforms
 from gsavatar.models import gaussians as gm
 from gsavatar.models.config import INPUT_STD_FLOOR, LearningRates, ModelConfig
-from gsavatar.models.encoder import sample_at_uv
-from gsavatar.models.mlp import AnchorMLPs
-from gsavatar.models.uv_decoder import UVDecoder
-from gsavatar.prep.localize import LocalizationMasks
-from gsavatar.prep.pca import PosePCA
-from gsavatar.prep.sample_points import Hierarchy
+from gsavatar.models.pose_heads import PoseDeltas, PoseHead, pose_head_class
 
 
 class AvatarOutput(NamedTuple):
@@ -77,7 +77,7 @@ def _check(name: str, t: Tensor | None, shape: tuple) -> None:
 
 
 class GaussianAvatar(nn.Module):
-    """Anchor MLPs + corrective bases over a prepared hierarchy (see module docstring)."""
+    """Pose head + per-Gaussian biases and corrective bases over a prepared hierarchy (see module docstring)."""
 
     def __init__(
         self,
@@ -124,9 +124,10 @@ class GaussianAvatar(nn.Module):
         self.register_buffer("ctrl_rest", f32(hierarchy.control.position))  # [C, 3]
         auv = hierarchy.anchors.uv if hierarchy.anchors.uv is not None else np.zeros((A, 2))
         self.register_buffer("anchor_uv", f32(auv))  # [A, 2] OBJ convention (v up)
-        slot_groups = rig.slot_groups()
-        hand = [BODY_GROUPS.index(h) for h in gm.HAND_GROUP_NAMES]
-        pm = gm.effective_pose_mask(masks.pose, slot_groups, hand, cfg.variant, cfg.local_pose)
+        head_cls = pose_head_class(cfg.variant)
+        hand_slots = np.isin(rig.slot_groups(), [BODY_GROUPS.index(h) for h in gm.HAND_GROUP_NAMES])  # [P]
+        # local_pose=False (ablation "w/o local pose"): every anchor sees every pose slot, whatever the head
+        pm = head_cls.input_mask(masks.pose, hand_slots) if cfg.local_pose else np.ones_like(masks.pose, bool)
         self.register_buffer("pose_mask", f32(pm))  # [A, P] 0/1
         self.register_buffer("face_mask", f32(masks.face))  # [A] 0/1
         for kind, pca in (("local", pca_local), ("global", pca_global)):
@@ -144,21 +145,8 @@ class GaussianAvatar(nn.Module):
         gen = torch.Generator().manual_seed(seed)
         K = cfg.num_sh
         self.latent_in = cfg.latent_dim if cfg.use_latent else 0
-        self.mlp: AnchorMLPs | None = None
-        self.uv_decoder: UVDecoder | None = None
-        if cfg.variant == "conv_uv":
-            if g.uv is None:
-                raise ValueError("variant conv_uv (nRFGCA-dagger) needs UV coordinates of the Gaussians; "
-                                 "the hierarchy has none (template without UVs?)")
-            Bg = Bc = 0  # no anchor bases: the decoder outputs the deltas directly
-            self.register_buffer("gauss_uv", f32(g.uv))  # [G, 2] OBJ convention
-            self._uv_split = {"pos": 3, "scale": 3, "rot": 4, "sh0": 3, "shn": (K - 1) * 3}
-            self.uv_decoder = UVDecoder(P + cfg.face_dim, sum(self._uv_split.values()), cfg.uv_decoder_size,
-                                        first_channels=cfg.uv_decoder_channels)
-        else:
-            Bg, Bc = cfg.n_basis, cfg.n_ctrl_basis
-            self.mlp = AnchorMLPs(A, P + cfg.face_dim + self.latent_in, Bg + Bc, cfg.hidden, cfg.mlp_out_init_scale, gen,
-                                   init=cfg.mlp_init)
+        self.pose_head: PoseHead = head_cls(cfg, hierarchy, P, gen)
+        Bg, Bc = self.pose_head.n_basis, self.pose_head.n_ctrl_basis  # 0: the head outputs its deltas directly
         log_s, q = gm.init_gaussian_params(g.position, g.normal, cfg.scale_max, cfg.init_normal_scale_ratio)
         z = lambda *s: nn.Parameter(torch.zeros(*s))  # noqa: E731
         self.scale_bias = nn.Parameter(f32(log_s))  # [G, 3] log metres
@@ -176,10 +164,14 @@ class GaussianAvatar(nn.Module):
         self.ctrl_basis = z(C, Bc, 3)
 
     # --- helpers -------------------------------------------------------------------------
-    @property
-    def pose_network(self) -> nn.Module:
-        """The network of the pose-dependent part: the anchor MLPs, or the UV decoder (``conv_uv``)."""
-        return self.mlp if self.mlp is not None else self.uv_decoder
+    _LEGACY_HEAD_KEYS = ("mlp.", "uv_decoder.", "gauss_uv")
+    """State-dict keys of the pose network before it moved into ``pose_head`` (checkpoints of earlier runs)."""
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
+        legacy = [k for k in state_dict if k.startswith(prefix) and k[len(prefix):].startswith(self._LEGACY_HEAD_KEYS)]
+        for key in legacy:
+            state_dict[f"{prefix}pose_head.{key[len(prefix):]}"] = state_dict.pop(key)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def sparse_weights(self, name: str, device: torch.device, dtype: torch.dtype) -> Tensor:
         """Interpolation weights as a sparse matrix, built once per device/dtype from the index/weight buffers:
@@ -206,12 +198,12 @@ class GaussianAvatar(nn.Module):
         return self._rig_cache[key]
 
     def conditioning_pose(self, pose: Tensor) -> Tensor:
-        """MLP pose input after the configured PCA (mode depends on ``self.training``). [B, P] -> [B, P]"""
+        """Pose-head pose input after the configured PCA (mode depends on ``self.training``). [B, P] -> [B, P]"""
         mode = gm.pca_mode_for(self.config.pca, self.training)
         if mode == "none":
             return pose
         m, b, lim = (getattr(self, f"pca_{mode}_{n}") for n in ("mean", "basis", "limit"))
-        return gm.pca_project(pose, m.to(pose.dtype), b.to(pose.dtype), lim.to(pose.dtype))
+        return pca_project(pose, m.to(pose.dtype), b.to(pose.dtype), lim.to(pose.dtype))
 
     @torch.no_grad()
     def set_input_stats(self, pose: Tensor, face: Tensor | None = None) -> None:
@@ -247,32 +239,6 @@ class GaussianAvatar(nn.Module):
             latents if self.latent_in else None, self.latent_in,
         )
 
-    def coefficients(self, pose: Tensor, face: Tensor | None = None, latents: Tensor | None = None) -> Tensor:
-        """Anchor-MLP coefficients ``w`` (``center_correctives``: minus those of the reference input).
-
-        pose [B, P], face [B, E] or None, latents [B, A, L] or None -> [B, A, n_basis + n_ctrl_basis]
-        """
-        x = self.anchor_inputs(pose, face, latents)  # [B, A, D]
-        if not self.config.center_correctives:
-            return self.mlp(x)
-        # Reference = the standardised mean input (zeros); one extra row through the same batched MLPs.
-        y = self.mlp(torch.cat([x, x.new_zeros(1, *x.shape[1:])], dim=0))
-        return y[:-1] - y[-1:]
-
-    def uv_deltas(self, pose: Tensor, face: Tensor | None) -> dict[str, Tensor]:
-        """``conv_uv`` only: per-Gaussian pre-activation deltas from the UV decoder.
-
-        pose [B, P] raw radians, face [B, E] or None -> {pos [B,G,3], scale [B,G,3], rot [B,G,4], sh0 [B,G,3],
-        shn [B,G,K-1,3]}
-        """
-        x = self.conditioning_pose(pose)
-        if self.config.face_dim:
-            x = torch.cat([x, face.to(x.dtype) if face is not None else x.new_zeros(x.shape[0], self.config.face_dim)], 1)
-        vals = sample_at_uv(self.uv_decoder(x), self.gauss_uv)  # [B, G, n_out]
-        out = dict(zip(self._uv_split, vals.split(list(self._uv_split.values()), dim=-1)))
-        out["shn"] = out["shn"].reshape(*out["shn"].shape[:2], -1, 3)
-        return out
-
     def _validate(self, pose, root_rotation, root_translation, face, latents, sh_degree) -> None:
         _check("pose", pose, (None, self.pose_dim))
         B = pose.shape[0]
@@ -301,50 +267,33 @@ class GaussianAvatar(nn.Module):
         """Posed Gaussians for a batch of frames.
 
         Args:
-            pose: Tensor  # [B, P] radians, rig order (raw; PCA applied to the MLP input only)
+            pose: Tensor  # [B, P] radians, rig order (raw; PCA applied to the pose head's input only)
             root_rotation: Tensor  # [B, 3] axis-angle
             root_translation: Tensor  # [B, 3] metres
             face: Tensor | None  # [B, E] face embedding; None -> zeros
             latents: Tensor | None  # [B, A, L] appearance latents; None -> zeros; ignored if not use_latent
             sh_degree: SH degree to output (<= config.sh_degree; None -> config.sh_degree)
-            correctives: evaluate the anchor MLPs; False -> bias terms only (early training)
+            correctives: evaluate the pose head; False -> bias terms only (early training)
 
         Returns:
             AvatarOutput (see its fields)
         """
         deg = self.config.sh_degree if sh_degree is None else int(sh_degree)
         self._validate(pose, root_rotation, root_translation, face, latents, deg)
-        B, Bg = pose.shape[0], self.config.n_basis
-        w_g = w_c = None
-        d: dict[str, Tensor] = {}
-        if correctives and self.uv_decoder is not None:
-            d = self.uv_deltas(pose, face)
-        elif correctives:
-            coeffs = self.coefficients(pose, face, latents)  # [B, A, Bg + Bc]
-            dev, dt = coeffs.device, coeffs.dtype
-            w_g = gm.sparse_interpolate(coeffs[..., :Bg], self.sparse_weights("gauss_anchor", dev, dt))  # [B, G, Bg]
-            w_c = gm.sparse_interpolate(coeffs[..., Bg:], self.sparse_weights("ctrl_anchor", dev, dt))  # [B, C, Bc]
-        ctrl_disp = gm.apply_basis(self.ctrl_bias, self.ctrl_basis, w_c, B)  # [B, C, 3]
+        B, n_rest = pose.shape[0], (deg + 1) ** 2 - 1
+        d = self.pose_head(self, pose, face, latents, n_rest) if correctives else PoseDeltas()
+        ctrl_disp = gm.add_delta(self.ctrl_bias, d.ctrl, B)  # [B, C, 3]
         offset = gm.sparse_interpolate(ctrl_disp, self.sparse_weights("gauss_ctrl", ctrl_disp.device, ctrl_disp.dtype))  # [B, G, 3]
-        if w_g is not None:
-            offset = offset + torch.einsum("bgk,gkd->bgd", w_g, self.gauss_pos_basis)
-        if d:
-            offset = offset + d["pos"]
+        if d.position is not None:
+            offset = offset + d.position
         canonical = self.rest_means[None] + offset  # [B, G, 3]
 
-        def pre(bias: Tensor, basis: Tensor, key: str) -> Tensor:  # λ + <w, ΔΛ> (+ UV-decoder delta)
-            x = gm.apply_basis(bias, basis, w_g, B)
-            if not d:
-                return x
-            return x + (d[key][:, :, : bias.shape[1]] if key == "shn" else d[key])
-
-        scales = gm.activate_scale(pre(self.scale_bias, self.scale_basis, "scale"), self.config.scale_max)
-        quats_c = gm.activate_quat(pre(self.rotation_bias, self.rotation_basis, "rot"))
+        scales = gm.activate_scale(gm.add_delta(self.scale_bias, d.scale, B), self.config.scale_max)
+        quats_c = gm.activate_quat(gm.add_delta(self.rotation_bias, d.rotation, B))
         opacities = torch.sigmoid(self.opacity_bias)[None].expand(B, -1)  # [B, G]
-        sh0 = gm.activate_sh0(pre(self.sh0_bias, self.sh0_basis, "sh0"))  # [B, G, 3]
-        n_rest = (deg + 1) ** 2 - 1
+        sh0 = gm.activate_sh0(gm.add_delta(self.sh0_bias, d.sh0, B))  # [B, G, 3]
         if n_rest:
-            x = pre(self.shn_bias[:, :n_rest], self.shn_basis[:, :, :n_rest], "shn")
+            x = gm.add_delta(self.shn_bias[:, :n_rest], d.shn, B)  # [B, G, n_rest, 3]
             sh = torch.cat([sh0[:, :, None], gm.activate_shn(x, self.config.shn_bound)], dim=2)  # [B, G, K, 3]
         else:
             sh = sh0[:, :, None]
@@ -369,12 +318,13 @@ class GaussianAvatar(nn.Module):
     def param_groups(self, lrs: LearningRates | None = None) -> list[dict]:
         """AdamW parameter groups with the paper's per-property learning rates (supp. D.1).
 
-        Every group has ``name``, ``params``, ``lr`` and ``weight_decay`` (anchor MLPs:
-        ``lrs.mlp_weight_decay``, everything else 0). Empty parameters (SH bands at
-        degree 0) are left out. Use with ``torch.optim.AdamW(groups, eps=1e-15, betas=(0.9, 0.999))``.
+        Every group has ``name``, ``params``, ``lr`` and ``weight_decay`` (group ``mlp``, the pose head's
+        network: ``lrs.mlp`` and ``lrs.mlp_weight_decay``; everything else weight decay 0). Empty parameters
+        (SH bands at degree 0, the bases of a head without any) are left out. Use with
+        ``torch.optim.AdamW(groups, eps=1e-15, betas=(0.9, 0.999))``.
         """
         lrs = lrs or LearningRates()
-        groups = [{"name": "mlp", "params": list(self.pose_network.parameters()), "lr": lrs.mlp,
+        groups = [{"name": "mlp", "params": list(self.pose_head.parameters()), "lr": lrs.mlp,
                    "weight_decay": lrs.mlp_weight_decay}]
         for attr, lr_name in self._GROUPS:
             p = getattr(self, attr)
@@ -388,7 +338,7 @@ class GaussianAvatar(nn.Module):
 
     def parameter_counts(self) -> dict[str, int]:
         """Number of scalars per parameter group (and ``total``)."""
-        out = {"mlp": sum(p.numel() for p in self.pose_network.parameters())}
+        out = {"mlp": sum(p.numel() for p in self.pose_head.parameters())}
         out.update({a: getattr(self, a).numel() for a, _ in self._GROUPS})
         out["total"] = sum(out.values())
         return out

@@ -4,22 +4,10 @@ Paper sizes (supp. D.1 / D.2): anchor MLPs with hidden layers ``(512, 256, 256, 
 16 Gaussian-corrective and 16 control-point coefficients per anchor, appearance
 latents ``N_l = 16``, SH up to degree 1.
 
-Ablations / baselines (paper section 4) map onto the config as follows
-(see :func:`variant_config`):
-
-=====================  ========  ==========  ==================  ==========
-name                   variant   local_pose  pca                 use_latent
-=====================  ========  ==========  ==================  ==========
-ours                   ours      True        local               True
-w/o local pose         ours      False       local               True
-w/o local PCA          ours      True        global              True
-w/o appearance         ours      True        local               False
-MMLPs-dagger           mmlps     True        global_test_only    False
-nRFGCA-dagger          conv_uv   False       none                False
-=====================  ========  ==========  ==================  ==========
-
-nRFGCA-dagger replaces the anchor MLPs and corrective bases by one convolutional decoder in
-UV space fed the full pose (:mod:`gsavatar.models.uv_decoder`).
+Every model variant of the paper (ours, ablations, baselines; section 4) is one row of
+:data:`VARIANTS`: the ``ModelConfig`` fields it sets, among them ``variant``, the pose head
+(:mod:`gsavatar.models.pose_heads`). The allowed names (:data:`VariantName`, the CLI's
+``--variant`` choices) and the pose-head names (:data:`Variant`) are derived from that table.
 """
 
 from __future__ import annotations
@@ -28,10 +16,36 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Literal
 
-Variant = Literal["ours", "mmlps", "conv_uv"]
+from gsavatar.utils.jsonio import config_to_json
+
 PcaMode = Literal["local", "global", "global_test_only", "none"]
 PresetName = Literal["tiny", "small", "paper"]
-VariantName = Literal["ours", "wo_local_pose", "wo_local_pca", "wo_appearance", "mmlps_dagger", "nrfgca_dagger"]
+
+VARIANTS: dict[str, dict[str, object]] = {
+    "ours": dict(variant="ours", local_pose=True, pca="local", use_latent=True),
+    "wo_local_pose": dict(variant="ours", local_pose=False, pca="local", use_latent=True),  # ablation
+    "wo_local_pca": dict(variant="ours", local_pose=True, pca="global", use_latent=True),  # ablation
+    "wo_appearance": dict(variant="ours", local_pose=True, pca="local", use_latent=False),  # ablation
+    "mmlps_dagger": dict(variant="mmlps", local_pose=True, pca="global_test_only", use_latent=False),  # baseline
+    "nrfgca_dagger": dict(variant="conv_uv", local_pose=False, pca="none", use_latent=False),  # baseline
+}
+"""The paper's model, ablations and baselines (section 4): name -> the :class:`ModelConfig` fields it sets
+(:func:`variant_config`). ``variant`` names the pose head (:data:`gsavatar.models.pose_heads.POSE_HEADS`):
+``ours`` localized anchor MLPs, ``mmlps`` anchor MLPs of the full pose (MMLPs-dagger), ``conv_uv`` one
+convolutional UV decoder of the full pose (nRFGCA-dagger). Adding a variant: a row here (and, for a new
+kind of network, a pose head)."""
+
+
+def pose_head_names() -> tuple[str, ...]:
+    """The pose heads :data:`VARIANTS` uses, in table order (the values ``ModelConfig.variant`` accepts)."""
+    return tuple(dict.fromkeys(str(row["variant"]) for row in VARIANTS.values()))
+
+
+# Both name sets come from the table (typing.get_args gives them back; tyro builds the CLI choices from them).
+VariantName = Literal[tuple(VARIANTS)]  # type: ignore[valid-type]
+"""Names of :data:`VARIANTS` (``TrainConfig.variant``)."""
+Variant = Literal[pose_head_names()]  # type: ignore[valid-type]
+"""Pose-head names used by :data:`VARIANTS` (``ModelConfig.variant``)."""
 
 INPUT_STD_FLOOR = 0.05
 """Floor of the per-parameter std used by ``input_norm`` (radians / face units): parameters that hardly
@@ -59,10 +73,11 @@ class ModelConfig:
     """Upper clamp of the activated Gaussian scale, metres. The paper's "0.2" is in its
     own (unstated, not metric) units; 5 cm is our metric equivalent for a human body."""
     variant: Variant = "ours"
-    """``ours``: per-anchor localized pose; ``mmlps``: MMLPs baseline, every anchor sees
-    the full pose except the hand/finger parameters, which stay localized ("augmented
-    with our localized face embedding and localized hand/finger pose conditioning");
-    ``conv_uv``: nRFGCA-dagger, a convolutional UV decoder of the full pose (no anchors)."""
+    """Pose head (:data:`gsavatar.models.pose_heads.POSE_HEADS`), one of the heads :data:`VARIANTS` uses:
+    ``ours`` per-anchor localized pose; ``mmlps`` MMLPs baseline, every anchor sees the full pose
+    except the hand/finger parameters, which stay localized ("augmented with our localized face
+    embedding and localized hand/finger pose conditioning"); ``conv_uv`` nRFGCA-dagger, a
+    convolutional UV decoder of the full pose (no anchors)."""
     local_pose: bool = True
     """Multiply each anchor's pose input by its pose mask. False = ablation "w/o local
     pose": every anchor sees every pose parameter (hands included, any variant)."""
@@ -122,8 +137,8 @@ class ModelConfig:
             raise ValueError(f"sh_degree must be in [0, 3], got {self.sh_degree}")
         if not self.scale_max > 0:
             raise ValueError(f"scale_max must be > 0 (metres), got {self.scale_max}")
-        if self.variant not in ("ours", "mmlps", "conv_uv"):
-            raise ValueError(f"variant must be 'ours', 'mmlps' or 'conv_uv', got {self.variant!r}")
+        if self.variant not in pose_head_names():
+            raise ValueError(f"variant must be one of {list(pose_head_names())}, got {self.variant!r}")
         if self.pca not in ("local", "global", "global_test_only", "none"):
             raise ValueError(f"pca must be local/global/global_test_only/none, got {self.pca!r}")
         if self.face_dim < 0:
@@ -142,6 +157,10 @@ class ModelConfig:
     def replace(self, **changes) -> ModelConfig:
         """Copy with some fields changed (validated)."""
         return dataclasses.replace(self, **changes)
+
+    def to_json(self) -> dict:
+        """Plain-JSON form (``config.json`` of a run, checked against a checkpoint's on resume)."""
+        return config_to_json(self)
 
 
 @dataclass(frozen=True)
@@ -173,13 +192,13 @@ class LearningRates:
     gauss_pos_basis: float = 1e-4
     """Per-Gaussian position-offset basis (no bias: "Gaussian position -/1e-4")."""
     mlp: float = 5e-4
-    """Anchor MLP weights and biases."""
+    """The pose head's network: anchor MLP weights and biases (or the UV decoder's)."""
     mlp_weight_decay: float = 1e-3
-    """AdamW weight decay of the anchor MLPs (every other group: 0)."""
+    """AdamW weight decay of the pose head's network (the avatar's other groups: 0)."""
     encoder: float = 5e-4
-    """Appearance encoder (supp. D.2)."""
+    """Appearance encoder (supp. D.2; :meth:`AppearanceEncoder.param_groups`)."""
     encoder_weight_decay: float = 1e-3
-    """AdamW weight decay of the appearance encoder."""
+    """AdamW weight decay of the appearance encoder (supp. D.2)."""
 
 
 CPU_RECIPE = dict(input_norm=True, center_correctives=True, latent_norm=True)
@@ -200,15 +219,7 @@ def model_preset(name: PresetName, **overrides) -> ModelConfig:
 
 
 def variant_config(base: ModelConfig, name: VariantName) -> ModelConfig:
-    """The config of one of the paper's ablations / baselines (table in the module docstring)."""
-    table = {
-        "ours": dict(variant="ours", local_pose=True, pca="local", use_latent=True),
-        "wo_local_pose": dict(variant="ours", local_pose=False, pca="local", use_latent=True),
-        "wo_local_pca": dict(variant="ours", local_pose=True, pca="global", use_latent=True),
-        "wo_appearance": dict(variant="ours", local_pose=True, pca="local", use_latent=False),
-        "mmlps_dagger": dict(variant="mmlps", local_pose=True, pca="global_test_only", use_latent=False),
-        "nrfgca_dagger": dict(variant="conv_uv", local_pose=False, pca="none", use_latent=False),
-    }
-    if name not in table:
-        raise ValueError(f"unknown variant {name!r}; expected one of {sorted(table)}")
-    return base.replace(**table[name])
+    """``base`` with the fields of one of the paper's variants (a row of :data:`VARIANTS`)."""
+    if name not in VARIANTS:
+        raise ValueError(f"unknown variant {name!r}; expected one of {sorted(VARIANTS)}")
+    return base.replace(**VARIANTS[name])

@@ -7,8 +7,11 @@ ReLU, with channels 8, 16, 32, 64, 128 (doubling from 8, capped at 128), give a
 ``[B, 128, S/32, S/32]`` grid (paper: 32x32). GroupNorm uses 8 groups (the paper's
 "8-wide group normalization"; a layer with fewer than 8 channels would use one group
 per channel). Two 3x3 convolutions predict ``mu`` and ``log sigma^2`` maps with
-``N_l`` channels; latents are sampled with the reparameterisation trick in training
-mode and equal ``mu`` in eval mode. ``logvar`` is clamped to ``[-30, 20]``.
+``N_l`` channels. ``logvar`` is clamped to ``[-30, 20]``. The latent map is ``mu`` unless the
+caller passes VAE noise ``eps``, then the reparameterised sample ``mu + sigma * eps``
+(:func:`reparameterize`, the one sampling path: the trainer draws ``eps`` per sample from its
+seeded generators, so a step's noise does not depend on the batch layout or the number of ranks).
+The KL term of the VAE is :func:`gsavatar.train.losses.kl_loss`.
 
 The ``log sigma^2`` head starts with zero weights and bias ``logvar_init`` (default -6,
 sigma = 0.05). With PyTorch's default init it would start near 0 (sigma = 1), noise 2.3x
@@ -27,12 +30,14 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from gsavatar.models.config import LearningRates
+
 LOGVAR_RANGE = (-30.0, 20.0)
 
 
 class EncoderOutput(NamedTuple):
     latent_map: Tensor
-    """Sampled latents (training) or ``mu`` (eval).  # [B, L, h, w]"""
+    """Sampled latents (noise given) or ``mu``.  # [B, L, h, w]"""
     mu: Tensor
     """Posterior mean.  # [B, L, h, w]"""
     logvar: Tensor
@@ -44,27 +49,23 @@ def encoder_channels(n_down: int = 5, first: int = 8, max_channels: int = 128) -
     return [min(first * 2**i, max_channels) for i in range(n_down)]
 
 
-def reparameterize(mu: Tensor, logvar: Tensor, generator: torch.Generator | None = None) -> Tensor:
-    """``mu + exp(logvar / 2) * eps``, ``eps ~ N(0, 1)`` drawn from ``generator``. [...] -> [...]
+def reparameterize(mu: Tensor, logvar: Tensor, eps: Tensor) -> Tensor:
+    """The VAE sample ``mu + exp(logvar / 2) * eps``.
 
-    ``logvar`` is clamped above at ``LOGVAR_RANGE[1]`` (as the encoder's head is):
-    exp(logvar / 2) overflows float32 for logvar > ~177, making the sample inf and its
-    gradient NaN. Very negative values need no clamp (the noise just vanishes).
+    Args:
+        mu: Tensor  # [...] posterior mean
+        logvar: Tensor  # [...] posterior log-variance; clamped above at ``LOGVAR_RANGE[1]`` (as the
+            encoder's head is): exp(logvar / 2) overflows float32 for logvar > ~177, making the
+            sample inf and its gradient NaN. Very negative values need no clamp (the noise vanishes).
+        eps: Tensor  # [...] standard-normal noise, mu's shape
+
+    Returns:
+        Tensor  # [...]
     """
-    eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
+    if eps.shape != mu.shape or logvar.shape != mu.shape:
+        raise ValueError(f"mu, logvar and eps must have one shape, got {tuple(mu.shape)}, {tuple(logvar.shape)}, "
+                         f"{tuple(eps.shape)}")
     return mu + torch.exp(0.5 * logvar.clamp(max=LOGVAR_RANGE[1])) * eps
-
-
-def kl_divergence(mu: Tensor, logvar: Tensor) -> Tensor:
-    """KL(N(mu, exp(logvar)) || N(0, 1)), mean over all elements (a scalar).
-
-    mu, logvar: Tensor  # [...] same shape. logvar is clamped to ``LOGVAR_RANGE``
-    first, so the result is finite for any finite input.
-    """
-    if mu.shape != logvar.shape:
-        raise ValueError(f"mu and logvar must have the same shape, got {tuple(mu.shape)} and {tuple(logvar.shape)}")
-    logvar = logvar.clamp(*LOGVAR_RANGE)
-    return 0.5 * (mu * mu + torch.exp(logvar) - 1.0 - logvar).mean()
 
 
 def sample_at_uv(latent_map: Tensor, uv: Tensor) -> Tensor:
@@ -164,17 +165,26 @@ class AppearanceEncoder(nn.Module):
         self._check(texture)
         return self.trunk(texture)
 
-    def forward(self, texture: Tensor, generator: torch.Generator | None = None) -> EncoderOutput:
-        """texture: Tensor  # [B, 3, S, S] in [0, 1], face masked -> EncoderOutput (maps [B, L, S/32, S/32])."""
+    def forward(self, texture: Tensor, eps: Tensor | None = None) -> EncoderOutput:
+        """Posterior of the latent map, and the map itself.
+
+        Args:
+            texture: Tensor  # [B, 3, S, S] in [0, 1], face masked
+            eps: Tensor | None  # [B, L, S/32, S/32] VAE noise (standard normal); None: the map is ``mu``
+
+        Returns:
+            EncoderOutput  # maps [B, L, S/32, S/32]
+        """
         h = self.features(texture)
         mu = self.mu_head(h)
         logvar = self.logvar_head(h).clamp(*LOGVAR_RANGE)
-        z = reparameterize(mu, logvar, generator) if self.training else mu
-        return EncoderOutput(z, mu, logvar)
+        return EncoderOutput(mu if eps is None else reparameterize(mu, logvar, eps), mu, logvar)
 
-    def param_groups(self, lr: float = 5e-4, weight_decay: float = 1e-3) -> list[dict]:
-        """One AdamW group (supp. D.2: lr 5e-4, weight decay 1e-3)."""
-        return [{"name": "encoder", "params": list(self.parameters()), "lr": lr, "weight_decay": weight_decay}]
+    def param_groups(self, lrs: LearningRates | None = None) -> list[dict]:
+        """One AdamW group ``encoder``: ``lrs.encoder`` and ``lrs.encoder_weight_decay`` (supp. D.2: 5e-4, 1e-3)."""
+        lrs = lrs or LearningRates()
+        return [{"name": "encoder", "params": list(self.parameters()), "lr": lrs.encoder,
+                 "weight_decay": lrs.encoder_weight_decay}]
 
 
 def standardize(x: Tensor, mean: Tensor, var: Tensor, floor: float) -> Tensor:

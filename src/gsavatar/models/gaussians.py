@@ -2,12 +2,13 @@
 
 Pipeline for one batch of frames:
 
-1. MLP conditioning pose: pose PCA + clamping (:func:`pca_project`), then per-anchor
+1. MLP conditioning pose: pose PCA + clamping (:func:`~gsavatar.data_schema.pose_pca.pca_project`), then per-anchor
    masking and concatenation with the masked face embedding and the appearance
    latent (:func:`anchor_inputs`).
 2. Anchor MLP outputs ``[B, A, n_basis + n_ctrl_basis]`` are interpolated to Gaussians
    and control points with the 3-NN inverse-distance weights (:func:`interpolate`).
-3. Every property is ``h(λ + <w, ΔΛ>)`` (:func:`apply_basis` + activations).
+3. Every property is ``h(λ + Δ)``: ``Δ = <w, ΔΛ>`` (:func:`basis_delta`) or a pose head's
+   own delta (:mod:`gsavatar.models.pose_heads`), :func:`add_delta` + activations.
 4. Canonical position = rest + interpolated control displacement + per-Gaussian
    offset; then LBS (:func:`pose_gaussians`).
 """
@@ -28,16 +29,6 @@ HAND_GROUP_NAMES = ("left_hand", "right_hand")
 
 
 # --- conditioning ---------------------------------------------------------------------
-def pca_project(pose: Tensor, mean: Tensor, basis: Tensor, limit: Tensor) -> Tensor:
-    """Pose -> PCA coefficients, clamp to ``±limit``, back (as ``PosePCA.project``).
-
-    pose [B, P], mean [P], basis [P, C] unit columns, limit [C] (``clamp_sigma * σ``) -> [B, P]
-    """
-    coeffs = (pose - mean) @ basis  # [B, C]
-    coeffs = torch.maximum(torch.minimum(coeffs, limit), -limit)
-    return coeffs @ basis.T + mean
-
-
 def pca_mode_for(mode: str, training: bool) -> str:
     """Which PCA the MLP input uses: ``local``/``global``/``none``.
 
@@ -48,29 +39,6 @@ def pca_mode_for(mode: str, training: bool) -> str:
     if mode not in ("local", "global", "none"):
         raise ValueError(f"unknown pca mode {mode!r}")
     return mode
-
-
-def effective_pose_mask(pose_mask: np.ndarray, slot_groups: np.ndarray, hand_groups: list[int], variant: str, local_pose: bool) -> np.ndarray:
-    """Per-anchor pose-input mask for a model variant.
-
-    - ``local_pose=False`` (ablation "w/o local pose") or ``conv_uv`` (nRFGCA-dagger): all ones.
-    - ``ours``: the localization mask.
-    - ``mmlps``: all ones, except the hand/finger slots (``slot_groups`` in
-      ``hand_groups``), which keep their localization columns.
-
-    pose_mask [A, P] bool, slot_groups [P] int -> [A, P] bool
-    """
-    pose_mask = np.asarray(pose_mask, bool)
-    if not local_pose or variant == "conv_uv":
-        return np.ones_like(pose_mask)
-    if variant == "ours":
-        return pose_mask.copy()
-    if variant == "mmlps":
-        out = np.ones_like(pose_mask)
-        hand = np.isin(np.asarray(slot_groups), hand_groups)
-        out[:, hand] = pose_mask[:, hand]
-        return out
-    raise ValueError(f"unknown variant {variant!r}")
 
 
 def anchor_inputs(
@@ -143,16 +111,20 @@ def sparse_interpolate(values: Tensor, matrix: Tensor) -> Tensor:
     return out.reshape(-1, B, D).transpose(0, 1)
 
 
-def apply_basis(bias: Tensor, basis: Tensor | None, coeffs: Tensor | None, batch: int) -> Tensor:
-    """Pre-activation property ``λ + <w, ΔΛ>``.
-
-    bias [N, *D], basis [N, K, *D] or None, coeffs [B, N, K] or None (no correctives)
-    -> [B, N, *D] (an expanded view of ``bias`` without correctives)
-    """
-    if coeffs is None or basis is None:
-        return bias[None].expand(batch, *bias.shape)
+def basis_delta(basis: Tensor, coeffs: Tensor) -> Tensor:
+    """Corrective ``<w, ΔΛ>`` of a per-point basis. basis [N, K, *D], coeffs [B, N, K] -> [B, N, *D]"""
     delta = torch.einsum("bnk,nkd->bnd", coeffs, basis.reshape(basis.shape[0], basis.shape[1], -1))
-    return bias[None] + delta.reshape(coeffs.shape[0], *bias.shape)
+    return delta.reshape(coeffs.shape[0], basis.shape[0], *basis.shape[2:])
+
+
+def add_delta(bias: Tensor, delta: Tensor | None, batch: int) -> Tensor:
+    """Pre-activation property ``λ + Δ`` (a pose head's delta, e.g. ``<w, ΔΛ>``).
+
+    bias [N, *D], delta [B, N, *D] or None (no correctives) -> [B, N, *D] (an expanded view of ``bias`` without delta)
+    """
+    if delta is None:
+        return bias[None].expand(batch, *bias.shape)
+    return bias[None] + delta
 
 
 # --- activations ----------------------------------------------------------------------

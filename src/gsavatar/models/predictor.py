@@ -50,7 +50,6 @@ when it has been trained, otherwise from zeros.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -60,8 +59,10 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from gsavatar.data_schema.pose_pca import clamp_coefficients, pca_project
 from gsavatar.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from gsavatar.models.mlp import AnchorMLPs
+from gsavatar.utils.jsonio import config_to_json
 
 ROOT_SLOTS = 6
 """Extra pose slots carrying the relative root motion: axis-angle (3), translation (3)."""
@@ -102,7 +103,8 @@ class PredictorConfig:
     """Hidden width of the InitialLatentNet (two hidden layers)."""
 
     def to_json(self) -> dict:
-        return dataclasses.asdict(self)
+        """Plain-JSON form (the predictor checkpoint's config, checked on resume)."""
+        return config_to_json(self)
 
 
 class RolloutState(NamedTuple):
@@ -198,8 +200,7 @@ def latent_pca_project(x: Tensor, mean: Tensor, basis: Tensor, limit: Tensor) ->
     x [..., A, L], mean [A, L], basis [A, L, K], limit [A, K] -> [..., A, L].
     Differentiable (zero gradient through clamped coefficients).
     """
-    c = torch.einsum("...al,alk->...ak", x - mean, basis)
-    c = torch.maximum(torch.minimum(c, limit), -limit)
+    c = clamp_coefficients(torch.einsum("...al,alk->...ak", x - mean, basis), limit)
     return mean + torch.einsum("...ak,alk->...al", c, basis)
 
 
@@ -299,8 +300,7 @@ class AppearancePredictor(nn.Module):
         if self.pose_pca_basis is None:
             return pose
         m, b, lim = self.pose_pca_mean.to(pose), self.pose_pca_basis.to(pose), self.pose_pca_limit.to(pose)
-        c = torch.maximum(torch.minimum((pose - m) @ b, lim), -lim)
-        return c @ b.T + m
+        return pca_project(pose, m, b, lim)
 
     def slot_values(self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor) -> Tensor:
         """Per-slot values over the window: local pose slots, then the relative root motion.
@@ -380,8 +380,7 @@ class AppearancePredictor(nn.Module):
         if self.pose_pca_basis is None:
             return pose[:, self.pose_slots]
         m, b, lim = self.pose_pca_mean.to(pose), self.pose_pca_basis.to(pose), self.pose_pca_limit.to(pose)
-        c = torch.maximum(torch.minimum((pose - m) @ b, lim), -lim)
-        return c / lim.clamp_min(1e-12)
+        return clamp_coefficients((pose - m) @ b, lim) / lim.clamp_min(1e-12)
 
     def initial_latents(self, pose: Tensor, trained_only: bool = True) -> Tensor:
         """Latents to start a rollout: the InitialLatentNet's (clamped) when available, else zeros.

@@ -14,10 +14,11 @@ from typing import Literal
 
 import tyro
 
-from gsavatar.utils.cli import run_reporting_errors
 from gsavatar.prep import stages
-from gsavatar.prep.common import TIMINGS, StageArgs
+from gsavatar.prep.common import StageArgs
 from gsavatar.prep.project_uv import ProjectConfig
+from gsavatar.synth.cli import Synth  # the one prep -> synth import: the capture source's command (docs/architecture.md)
+from gsavatar.utils.cli import run_reporting_errors
 
 
 @dataclass
@@ -137,28 +138,6 @@ class Verify:
         print(f"{self.dataset}: all checksums ok")
 
 
-@dataclass
-class Synth:
-    """Build a synthetic capture (real anny body + real CMU mocap) in capture format v1."""
-
-    out: Path
-    """Output capture directory."""
-    preset: Literal["tiny", "small", "hard"] = "tiny"
-    """Size/difficulty preset (tiny: tests, small: demo, hard: stability cases)."""
-    seed: int = 0
-    """Random seed (same seed -> identical capture)."""
-    anny_cache: Path | None = None
-    """Cache of the anny body build (default: $ANNY_CACHE_DIR or ~/.cache/gsavatar/anny)."""
-    overwrite: bool = False
-    """Replace an existing capture in ``out`` (otherwise a valid one is reused)."""
-    force_out: bool = False
-    """Write into a non-empty ``out`` that holds no capture (refused otherwise, so a user's files are never
-    overwritten)."""
-
-    def run(self) -> None:
-        stages.synth(self)
-
-
 COMMANDS: dict[str, type] = {
     "synth": Synth,
     "pose-template": PoseTemplate,
@@ -179,8 +158,9 @@ def main(argv: list[str] | None = None) -> int:
     rc = run_reporting_errors(cmd.run)
     if rc:
         return rc
-    if TIMINGS:
-        print("stage timings: " + ", ".join(f"{k} {v:.1f}s" for k, v in TIMINGS.items()))
+    timings = getattr(cmd, "timings", {})  # StageArgs commands record the stages they ran
+    if timings:
+        print("stage timings: " + ", ".join(f"{k} {v:.1f}s" for k, v in timings.items()))
     return 0
 
 

@@ -6,14 +6,17 @@ import dataclasses
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+
+import tyro
 
 from gsavatar.data_schema import Capture, load_capture
 from gsavatar.data_schema.dataset import (NO_INPUTS, ShardStore, adopt_inputs, inputs_digest, plan_shards,
-                                          read_dataset_json, record_stage, stage_status)
+                                          read_dataset_json, record_stage, stage_dir, stage_status)
 from gsavatar.prep.sharding import RankInfo, barrier, config_hash, init_distributed, parse_shard_arg, run_sharded
 from gsavatar.utils.cli import set_resume_hint
+from gsavatar.utils.jsonio import config_to_json
 from gsavatar.utils.outdir import claim_output_dir
 
 FRAME_FILES = "per-frame files"
@@ -38,18 +41,12 @@ class StageArgs:
     """Local worker processes for per-frame stages (0 = all cores)."""
     shard_size: int = 16
     """Frames per shard of per-frame outputs."""
+    timings: tyro.conf.Suppress[dict[str, float]] = field(default_factory=dict)
+    """Seconds per stage run by this command (not an option: the CLI prints them as a summary)."""
 
     @property
     def num_workers(self) -> int:
         return self.workers if self.workers > 0 else (os.cpu_count() or 1)
-
-
-TIMINGS: dict[str, float] = {}
-"""Seconds per stage in this process, printed as a summary by the CLI."""
-
-
-def stage_dir(root: Path, stage: str) -> Path:
-    return Path(root) / stage.replace("-", "_")
 
 
 def open_capture(args: StageArgs) -> Capture:
@@ -58,8 +55,7 @@ def open_capture(args: StageArgs) -> Capture:
 
 def stage_config(cfg) -> dict:
     """JSON-able config of a stage (dataclass or dict), recorded in dataset.json."""
-    d = dataclasses.asdict(cfg) if dataclasses.is_dataclass(cfg) else dict(cfg)
-    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()}
+    return config_to_json(cfg if dataclasses.is_dataclass(cfg) else dict(cfg))
 
 
 def open_dataset(args: StageArgs) -> Path:
@@ -102,7 +98,7 @@ def run_single_file_stage(stage: str, args: StageArgs, config: dict, produce, in
     files = produce()
     dt = time.perf_counter() - t0
     record_stage(root, stage, config, files, dt, capture=args.capture, inputs=inputs)
-    TIMINGS[stage] = TIMINGS.get(stage, 0.0) + dt
+    args.timings[stage] = args.timings.get(stage, 0.0) + dt
     print(f"[{stage}] done in {dt:.1f}s -> {stage_dir(root, stage)}")
     return True
 
@@ -138,7 +134,7 @@ def run_frame_stage(stage: str, args: StageArgs, config: dict, frames: list[int]
                               shard_inputs=shard_inputs)
     barrier(info)
     dt = time.perf_counter() - t0
-    TIMINGS[stage] = TIMINGS.get(stage, 0.0) + dt
+    args.timings[stage] = args.timings.get(stage, 0.0) + dt
     if info.torchrun:
         done = all(store.is_complete(s, config_hash(cfg), inputs_digest(shard_inputs[s.index])) for s in specs)
     # torchrun: rank 0 merges after the barrier; --shard i/N: whoever finds every shard done merges.

@@ -123,7 +123,7 @@ def render_hierarchy_figure(
     """Fig. 2-style picture: grey mesh, anchors (orange), control points (blue), Gaussians (red).
 
     ``template``: :class:`~gsavatar.data_schema.template.Template`; ``hierarchy``:
-    :class:`~gsavatar.prep.sample_points.Hierarchy`; at most ``max_gaussians`` random
+    :class:`~gsavatar.data_schema.hierarchy.Hierarchy`; at most ``max_gaussians`` random
     Gaussians are drawn. Returns ``path`` (PNG).
     """
     pv = _pyvista()
@@ -160,7 +160,7 @@ def render_influence_figure(
 ) -> Path:
     """Fig. 3b-style picture: Gaussians coloured by whether pose parameter ``param`` is active.
 
-    ``masks``: :class:`~gsavatar.prep.localize.LocalizationMasks` of the hierarchy's
+    ``masks``: :class:`~gsavatar.data_schema.localization.LocalizationMasks` of the hierarchy's
     anchors. A Gaussian is active when any of its 3 interpolation anchors is. Gaussians:
     active red, inactive light blue; anchors: active orange, inactive blue. Returns ``path`` (PNG).
     """

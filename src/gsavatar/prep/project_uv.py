@@ -41,6 +41,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 
 from gsavatar.data_schema.capture import Camera, Capture
+from gsavatar.data_schema.prepared import resize_face_mask
 from gsavatar.data_schema.template import Template
 from gsavatar.geometry.camera import distort, undistort
 from gsavatar.prep.uv_atlas import TexelMap
@@ -130,18 +131,6 @@ def erode_mask(mask: np.ndarray | None, shape: tuple[int, int], erode_px: int, t
 
         fg = cv2.erode(fg, np.ones((erode_px, erode_px), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=1)
     return fg.astype(bool)
-
-
-def resize_face_mask(face_uv_mask: np.ndarray, size: int) -> np.ndarray:
-    """Resize a UV face mask (True = face, top row = v=1) to ``size x size``. -> bool."""
-    import cv2
-
-    m = np.asarray(face_uv_mask, dtype=np.float32)
-    if m.shape == (size, size):
-        return m > 0.5
-    if m.shape[0] >= size and m.shape[1] >= size:  # downsample: texel is face if >= half of it is
-        return cv2.resize(m, (size, size), interpolation=cv2.INTER_AREA) >= 0.5
-    return cv2.resize(m, (size, size), interpolation=cv2.INTER_NEAREST) > 0.5
 
 
 def _fov_r2_limit(cam: Camera) -> float:
@@ -519,7 +508,7 @@ def cameras_seeing(vertices: np.ndarray, cameras: Sequence[Camera]) -> list[str]
 
 def iter_frame_views(capture: Capture, frame: int, cams: Sequence[str] | None = None) -> Iterable[View]:
     """Yield (camera, image [H,W,3] float32, mask [H,W] float32) of one frame, one view at a time."""
-    from gsavatar.data_schema.errors import SchemaError
+    from gsavatar.utils.errors import SchemaError
     from gsavatar.utils.io import read_image, read_mask
 
     for name in cams if cams is not None else list(capture.cameras):
@@ -568,7 +557,7 @@ def check_mask_coverage(capture: Capture, cams: Sequence[str], max_frames: int =
     of them have between MIN_FOREGROUND and MAX_FOREGROUND foreground, the textures would be empty (or
     full of background): SchemaError naming the masks folder, with examples. Single odd views only warn.
     """
-    from gsavatar.data_schema.errors import SchemaError
+    from gsavatar.utils.errors import SchemaError
     from gsavatar.utils.io import read_mask
 
     frames = sorted({int(f) for f in np.linspace(0, capture.num_frames - 1, min(max_frames, capture.num_frames)).round()})

@@ -20,10 +20,10 @@ import cv2
 import numpy as np
 
 from gsavatar.data_schema import load_capture
-from gsavatar.data_schema.dataset import ShardReader, read_dataset_json
-from gsavatar.prep.common import stage_dir
+from gsavatar.data_schema.dataset import ShardReader, read_dataset_json, stage_dir
+from gsavatar.data_schema.prepared import load_gt_texture, resize_face_mask
 from gsavatar.utils.cli import run_reporting_errors
-from gsavatar.utils.io import atomic_write_json, read_image, write_image
+from gsavatar.utils.io import atomic_write_json, write_image
 from gsavatar.utils.outdir import claim_output_dir
 
 
@@ -33,16 +33,6 @@ def texture_psnr(pred: np.ndarray, gt: np.ndarray, sel: np.ndarray) -> float:
         return float("nan")
     mse = float(np.mean((pred[sel].astype(np.float64) - gt[sel].astype(np.float64)) ** 2))
     return float(10 * np.log10(1.0 / max(mse, 1e-12)))
-
-
-def load_gt_texture(capture_root: Path, frame: int, size: int) -> np.ndarray | None:
-    p = capture_root / "gt" / "textures" / f"{frame:08d}.png"
-    if not p.exists():
-        return None
-    t = read_image(p)
-    if t.shape[0] != size:
-        t = cv2.resize(t, (size, size), interpolation=cv2.INTER_AREA)
-    return t
 
 
 def count_image(count: np.ndarray, max_views: int) -> np.ndarray:
@@ -63,7 +53,6 @@ def build_report(dataset: Path, out: Path, frames: list[int] | None = None, comp
     frames = frames or reader.frames
     rows = []
     cap = load_capture(cap_root, check_files=True)
-    from gsavatar.prep.project_uv import resize_face_mask
     from gsavatar.prep.stages import load_atlas, load_atlas_face_mask
 
     fmask = load_atlas_face_mask(dataset)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import os
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +12,6 @@ from gsavatar.data_schema.dataset import read_dataset_json, stage_complete
 from gsavatar.prep.common import StageArgs, open_capture, run_frame_stage, run_single_file_stage
 from gsavatar.prep.inputs import frame_inputs, metadata_inputs, upstream_inputs
 from gsavatar.utils.io import read_npz
-from gsavatar.utils.outdir import claim_output_dir
 from gsavatar.utils.paths import output_path
 
 # Capture files each stage reads (fingerprinted; a change re-runs the stage). ``template/`` = every file in it.
@@ -23,11 +21,6 @@ PROJECT_UV_INPUTS = ("capture.json", "calibration.json", "splits.json", "templat
 FIT_PCA_INPUTS = ("motion.npz", "splits.json", "template/rig.json")
 SAMPLE_POINTS_INPUTS = ("template/",)  # automatic counts come from calibration.json but are resolved into the config
 LOCALIZE_INPUTS = ("template/",)  # + sample-points
-
-
-def default_anny_cache() -> Path:
-    env = os.environ.get("ANNY_CACHE_DIR")
-    return Path(env) if env else Path.home() / ".cache" / "gsavatar" / "anny"
 
 
 # --------------------------------------------------------------------------- pose-template
@@ -43,23 +36,6 @@ def pose_template(args: StageArgs) -> bool:
     return run_frame_stage("pose-template", args, {"num_vertices": int(len(cap.template.vertices))}, frames,
                            functools.partial(_pose_shard, str(args.capture)),
                            metadata_inputs(cap.root, POSE_TEMPLATE_INPUTS))
-
-
-# --------------------------------------------------------------------------- synth
-def synth(cmd) -> None:
-    from gsavatar.synth.make import make_capture
-    from gsavatar.synth.presets import preset
-
-    cfg = preset(cmd.preset, seed=cmd.seed)
-    if (Path(cmd.out) / "capture.json").exists() and not cmd.overwrite:
-        from gsavatar.data_schema import load_capture
-
-        load_capture(cmd.out)  # validates; an existing complete capture is reused, not rebuilt
-        print(f"{cmd.out} already holds a valid capture; reusing it (--overwrite to rebuild)")
-        return
-    claim_output_dir(Path(cmd.out), "capture", cmd.force_out, "--force-out")  # not registered: it fills the anny cache too
-    make_capture(cfg, Path(cmd.out), cmd.anny_cache or default_anny_cache(), overwrite=cmd.overwrite)
-    print(f"capture written to {cmd.out}")
 
 
 # --------------------------------------------------------------------------- uv-atlas
@@ -127,8 +103,7 @@ def load_atlas_face_mask(root: Path) -> np.ndarray | None:
 
 # --------------------------------------------------------------------------- project-uv
 def _project_shard(capture_dir: str, dataset: str, cfg_json: dict, cams: list[str], frames: list[int]) -> dict[str, np.ndarray]:
-    from gsavatar.data_schema.dataset import ShardReader
-    from gsavatar.prep.common import stage_dir
+    from gsavatar.data_schema.dataset import ShardReader, stage_dir
     from gsavatar.prep.project_uv import ProjectConfig, UVProjector, iter_frame_views
 
     cap = load_capture(capture_dir)
@@ -253,8 +228,8 @@ def sample_points(args: StageArgs, anchors: int = 0, control: int = 0, gaussians
 def localize(args: StageArgs, ancestor_levels: int = 1, k_neighbors: int = 6, figure_param: str = "Neck.ry",
              figures: bool = True) -> bool:
     from gsavatar.data_schema.dataset import stage_path
+    from gsavatar.data_schema.hierarchy import Hierarchy
     from gsavatar.prep.localize import build_localization
-    from gsavatar.prep.sample_points import Hierarchy
 
     cap = open_capture(args)
     root = Path(args.out)

@@ -5,7 +5,7 @@ compositor that follows gsplat's rules, on CUDA it can delegate to gsplat.
 """
 
 from .compositor import CompositeStats, composite
-from .projection import ProjectedGaussians, camera_centers, project_gaussians, quat_to_rotmat
+from .projection import ProjectedGaussians, camera_centers, project_gaussians
 from .rasterize import Backend, RenderOutput, rasterize
 from .sh import eval_sh_colors, num_sh_bases, rgb_to_sh0, sh_bases
 
@@ -19,7 +19,6 @@ __all__ = [
     "eval_sh_colors",
     "num_sh_bases",
     "project_gaussians",
-    "quat_to_rotmat",
     "rasterize",
     "rgb_to_sh0",
     "sh_bases",

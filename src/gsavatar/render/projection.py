@@ -8,7 +8,8 @@ low-pass dilation, same opacity-aware bounding radius and the same culling.
 Conventions:
     * ``viewmats`` are ``cam_from_world`` 4x4 matrices, OpenCV camera axes
       (+x right, +y down, +z forward).
-    * Quaternions are ``wxyz`` and need not be normalised.
+    * Quaternions are ``wxyz`` and need not be normalised; like gsplat's kernel, R is that of the
+      normalised quaternion (:func:`gsavatar.geometry.rotations.quat_to_matrix`; zero -> identity).
     * Pixel ``(i, j)`` (row, column) has its centre at ``(j + 0.5, i + 0.5)``.
 """
 
@@ -19,14 +20,13 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from gsavatar.geometry.rotations import quat_to_matrix
+
 # gsplat's ALPHA_THRESHOLD: a Gaussian never contributes where alpha < 1/255.
 ALPHA_THRESHOLD = 1.0 / 255.0
 # gsplat's largest bounding extent in standard deviations: sqrt(2 ln 255) ~ 3.33,
 # i.e. exactly where a fully opaque Gaussian drops below ALPHA_THRESHOLD.
 MAX_EXTEND = 3.33
-# Below this squared norm a quaternion is treated as "no rotation": dividing by
-# the clamped norm keeps R finite and its gradient bounded (0 at q = 0).
-QUAT_NORM_SQ_EPS = 1e-12
 
 
 class ProjectedGaussians(NamedTuple):
@@ -47,42 +47,6 @@ class ProjectedGaussians(NamedTuple):
     valid: Tensor
 
 
-def quat_to_rotmat(quats: Tensor) -> Tensor:
-    """Rotation matrices from (possibly unnormalised) quaternions.
-
-    Args:
-        quats: Tensor  # [..., 4] wxyz, any norm; the zero quaternion maps to identity
-
-    Returns:
-        Tensor  # [..., 3, 3] rotation taking the Gaussian's local axes to the parent frame
-    """
-    # R is invariant to the scale of q, so dividing by a constant (detached) max
-    # component changes neither R nor its gradient, but keeps |q|^2 below overflow
-    # for huge quaternions (float32: |q| > ~1e19 made R NaN via 0 * inf).
-    peak = quats.detach().abs().amax(dim=-1, keepdim=True)
-    quats = quats / torch.where(peak > 1.0, peak, torch.ones_like(peak))
-    w, x, y, z = quats.unbind(-1)
-    # Use the homogeneous form R = I + 2/|q|^2 * (...) instead of normalising q
-    # first: numerators are quadratic in q, so the map and its gradient stay
-    # finite for q -> 0 (normalising would blow the gradient up as 1/|q|).
-    s = 2.0 / (w * w + x * x + y * y + z * z).clamp_min(QUAT_NORM_SQ_EPS)
-    rot = torch.stack(
-        [
-            1.0 - s * (y * y + z * z),
-            s * (x * y - w * z),
-            s * (x * z + w * y),
-            s * (x * y + w * z),
-            1.0 - s * (x * x + z * z),
-            s * (y * z - w * x),
-            s * (x * z - w * y),
-            s * (y * z + w * x),
-            1.0 - s * (x * x + y * y),
-        ],
-        dim=-1,
-    )
-    return rot.reshape(quats.shape[:-1] + (3, 3))
-
-
 def covariance_factor(quats: Tensor, scales: Tensor) -> Tensor:
     """Factor ``M = R(q) diag(s)`` of the world covariance ``Sigma = M M^T``.
 
@@ -93,7 +57,7 @@ def covariance_factor(quats: Tensor, scales: Tensor) -> Tensor:
     Returns:
         Tensor  # [N, 3, 3] world_from_local scaled axes
     """
-    return quat_to_rotmat(quats) * scales[..., None, :]
+    return quat_to_matrix(quats) * scales[..., None, :]
 
 
 def project_gaussians(

@@ -199,9 +199,15 @@ def _save_cached(where: Path, key: str, t: Template, rig: Rig) -> None:
 # --------------------------------------------------------------------------------------
 # building from anny
 # --------------------------------------------------------------------------------------
+def default_anny_cache() -> Path:
+    """Anny's model-data cache when none is given: ``$ANNY_CACHE_DIR``, else ``~/.cache/gsavatar/anny``
+    (read when called, never at import)."""
+    env = os.environ.get("ANNY_CACHE_DIR")
+    return Path(env) if env else Path.home() / ".cache" / "gsavatar" / "anny"
+
+
 def _import_anny(cache_dir: Path):
     cache_dir.mkdir(parents=True, exist_ok=True)
-    os.environ["ANNY_CACHE_DIR"] = str(cache_dir)  # read by anny.paths at import time
     try:
         import anny.paths
         from anny.face_segmentation import get_face_segmentation_mask
@@ -213,7 +219,9 @@ def _import_anny(cache_dir: Path):
             "`pip install roma trimesh requests` (see scripts/setup.sh), or pass an existing "
             f"template instead. Original error: {e}"
         ) from e
-    anny.paths.set_anny_cache_path(cache_dir)  # in case anny was imported earlier
+    # anny reads its cache path through get_anny_cache_path() when it builds model data, so setting it here
+    # (rather than in this process's environment) is enough, whether or not anny was imported before.
+    anny.paths.set_anny_cache_path(cache_dir)
     return Anny, get_face_segmentation_mask
 
 

@@ -16,7 +16,7 @@
       gt/config.json                 the SynthConfig
 
 The body is the Anny model (:mod:`gsavatar.synth.body`), the motion a CMU BVH clip
-retargeted onto it (:mod:`gsavatar.synth.retarget`), the appearance
+retargeted onto it (:mod:`gsavatar.motion.retarget`), the appearance
 :class:`~gsavatar.synth.appearance.AppearanceModel`, the images ray cast by
 :mod:`gsavatar.synth.render`. Same config and seed -> byte-identical files: every frame
 is rendered independently with single-threaded Embree, frames are spread over a
@@ -55,7 +55,7 @@ def load_motion(cfg: SynthConfig, rig: Rig) -> Motion:
     """The BVH segment retargeted onto ``rig`` at ``cfg.fps`` with the ``cfg.root_xz`` treatment."""
     from scipy.ndimage import gaussian_filter1d
 
-    from gsavatar.synth.retarget import motion_from_bvh_file
+    from gsavatar.motion.retarget import motion_from_bvh_file
 
     m = motion_from_bvh_file(cfg.bvh_path, rig, fps_out=cfg.fps, start=cfg.bvh_start, count=cfg.num_frames)
     if len(m.pose) != cfg.num_frames:
@@ -316,7 +316,7 @@ class MakeArgs:
     config: SynthConfig
     """What to build (any field of the chosen preset can be overridden, e.g. ``--config.seed 3``)."""
     anny_cache: Path | None = None
-    """Anny model-data cache directory (default: $ANNY_CACHE_DIR, else .cache/anny)."""
+    """Anny model-data cache directory (default: $ANNY_CACHE_DIR, else ~/.cache/gsavatar/anny)."""
     overwrite: bool = False
     """Replace an existing capture in ``out``."""
     force_out: bool = False
@@ -329,12 +329,13 @@ def main() -> int:
 
     import tyro
 
+    from gsavatar.synth.body import default_anny_cache
     from gsavatar.synth.presets import PRESET_HELP, PRESETS
 
     args = tyro.extras.overridable_config_cli(
         {name: (PRESET_HELP[name], MakeArgs(out=Path(f"captures/synth_{name}"), config=cfg)) for name, cfg in PRESETS.items()})
     cfg = args.config
-    cache = args.anny_cache or Path(os.environ.get("ANNY_CACHE_DIR", ".cache/anny"))
+    cache = args.anny_cache or default_anny_cache()
     from gsavatar.utils.cli import run_reporting_errors
     from gsavatar.utils.outdir import claim_output_dir
 

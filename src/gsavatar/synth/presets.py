@@ -23,6 +23,7 @@ from typing import Literal
 
 from gsavatar.synth.appearance import AppearanceConfig
 from gsavatar.synth.cameras import SpecialKind
+from gsavatar.utils.jsonio import config_to_json
 
 PresetName = Literal["tiny", "small", "hard"]
 DEFAULT_BVH = "/usr/share/assimp/models/BVH/01_01.bvh"
@@ -93,11 +94,7 @@ class SynthConfig:
 
     def to_json(self) -> dict:
         """Plain-JSON form for ``gt/config.json``; ``workers`` is left out (it never changes the output)."""
-        d = dataclasses.asdict(self)
-        d.pop("workers")
-        d["background"] = list(self.background)
-        d["special_cameras"] = list(self.special_cameras)
-        return d
+        return config_to_json(self, exclude=("workers",))
 
     @classmethod
     def from_json(cls, d: dict) -> SynthConfig:

@@ -17,9 +17,9 @@ from pathlib import Path
 import torch
 import tyro
 
-from gsavatar.utils.cli import run_reporting_errors
-from gsavatar.train.config import TrainConfig
+from gsavatar.runs.config import TrainConfig
 from gsavatar.train.predictor_cli import Predictor
+from gsavatar.utils.cli import run_reporting_errors
 
 
 @dataclass

@@ -7,8 +7,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gsavatar.models.batch import FrameBatch
+from gsavatar.models.net import AvatarNet
+from gsavatar.runs.views import render_views
 from gsavatar.train.data import ViewDataset
-from gsavatar.train.trainer import AvatarNet, render_views
 from gsavatar.utils.io import write_image
 from gsavatar.utils.paths import output_path
 
@@ -41,12 +43,10 @@ def evaluate_views(net: AvatarNet, data: ViewDataset, device: torch.device, sh_d
     saved = 0
     for i in range(len(data)):
         b = {k: (v[None].to(device) if torch.is_tensor(v) else v) for k, v in data[i].items()}
-        face = b["face"] if b["face"].numel() else None
         latents = None
         if latents_fn is not None:
             latents = latents_fn(int(b["frame"])).to(device)[None]
-        out = net(b["pose"], b["root_rotation"], b["root_translation"], face, b.get("texture"), None, sh_degree, True,
-                  latents=latents)
+        out = net(FrameBatch.from_dict(b, latents), sh_degree=sh_degree)
         H, W = b["image"].shape[-2:]
         bg = torch.zeros(1, 3, device=device)
         pred, _ = render_views(out.avatar, b["viewmat"], b["K"], W, H, bg, sh_degree, backend)

@@ -17,18 +17,19 @@ Choices the paper leaves open (stated here, used consistently):
   squared Euclidean distance between displacements ``||d_i - d_j||^2``.
 * ``kl_loss``: KL(N(mu, exp(logvar)) || N(0, I)) summed over all latent elements
   of a sample and averaged over the batch (the standard VAE convention; with the
-  paper's 1e-6 weight the term is small but not negligible for large latents).
+  paper's 1e-6 weight the term is small but not negligible for large latents). The
+  one KL of the code base: the encoder only returns ``mu`` and ``logvar``.
 * ``erode_mask``: a (2 px + 1)^2 square min-filter; pixels outside the image do
   *not* erode (foreground touching the image border stays foreground).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
-
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+from gsavatar.runs.config import LossWeights
 
 # Guards 0/0 when a mask is empty (the loss is then 0, not NaN).
 _MASK_EPS = 1e-8
@@ -41,33 +42,6 @@ _KL_LOGVAR_LINEAR = 50.0
 def _reduce_dtype(t: Tensor) -> Tensor:
     """float16/bfloat16 -> float32 (sums over ~1e5 elements overflow float16's 65504)."""
     return t.float() if t.is_floating_point() and t.element_size() < 4 else t
-
-
-@dataclass
-class LossWeights:
-    """Weights of the training loss terms (defaults: the paper's, Sec. 4 "Training Details")."""
-
-    l1: float = 1.0
-    """Photometric L1 between the rendered and the ground-truth image."""
-    lpips: float = 0.1
-    """Perceptual LPIPS distance (metric named by ``LPIPS.lpips_name``)."""
-    opac: float = 0.5
-    """Opacity regulariser: pushes accumulated alpha to 1 inside the eroded foreground mask."""
-    scale: float = 1.0
-    """Scale regulariser: penalises Gaussians whose largest axis exceeds a threshold."""
-    cpt: float = 0.5
-    """Control-point smoothness: displacement difference to the n (paper: 5) nearest control points."""
-    kl: float = 1e-6
-    """KL divergence of the appearance latent posterior to N(0, I)."""
-
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if not isinstance(v, (int, float)) or not v >= 0:
-                raise ValueError(f"LossWeights.{f.name} must be a number >= 0, got {v!r}")
-
-    def as_dict(self) -> dict[str, float]:
-        return {f.name: float(getattr(self, f.name)) for f in fields(self)}
 
 
 def _check_same_shape(name_a: str, a: Tensor, name_b: str, b: Tensor) -> None:
@@ -235,7 +209,6 @@ def total_loss(terms: dict[str, Tensor], w: LossWeights) -> tuple[Tensor, dict[s
 
 
 __all__ = [
-    "LossWeights",
     "cpt_smoothness_loss",
     "erode_mask",
     "kl_loss",

@@ -29,13 +29,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from gsavatar.data_schema.errors import SchemaError
+from gsavatar.data_schema.prepared import ProjectedTextures
 from gsavatar.models.predictor import AppearancePredictor, PredictorConfig
-from gsavatar.train.checkpoint import load_checkpoint, resume_hint, save_checkpoint
+from gsavatar.runs.checkpoint import load_checkpoint, resume_hint, save_checkpoint
+from gsavatar.runs.load import LoadedRun, load_run
 from gsavatar.train.sampler import step_generator
+from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.cli import set_resume_hint
 from gsavatar.utils.io import atomic_save_npz, atomic_write_json, read_npz
-from gsavatar.utils.jsonio import parse_json_text
+from gsavatar.utils.jsonio import config_to_json, parse_json_text
 from gsavatar.utils.outdir import claim_output_dir
 
 TARGETS_FORMAT = "gsavatar-predictor-targets"
@@ -105,21 +107,17 @@ def predictor_dir(run: Path, out: Path | None = None) -> Path:
 
 @torch.no_grad()
 def extract_targets(run: Path, out: Path | None = None, device: str = "auto", batch_size: int = 8,
-                    loaded: tuple | None = None) -> TargetLatents:
+                    loaded: LoadedRun | None = None) -> TargetLatents:
     """Encoder latents of every textured frame, cached (keyed on the run's checkpoint step).
 
     ``loaded``: ``load_run(run)``'s result, to avoid reloading. -> TargetLatents
     """
-    from gsavatar.data_schema.dataset import ShardReader
-    from gsavatar.prep.common import stage_dir
-    from gsavatar.train.runs import load_run
-
     net, scene, _, step = loaded if loaded is not None else load_run(run, device)
     if net.encoder is None:
         raise ValueError(f"run {run} has no appearance encoder (variant without latents): nothing to predict")
     path = predictor_dir(run, out) / "targets.npz"
-    reader = ShardReader(stage_dir(scene.dataset, "project-uv"))
-    frames = np.asarray(reader.frames, dtype=np.int64)
+    textures = ProjectedTextures(scene.dataset)
+    frames = np.asarray(textures.frames, dtype=np.int64)
     if path.exists():
         try:
             z = read_npz(path, keys=("header", "latents", "frames"))
@@ -132,7 +130,7 @@ def extract_targets(run: Path, out: Path | None = None, device: str = "auto", ba
     dev = next(net.parameters()).device
     out_lat = []
     for i in range(0, len(frames), batch_size):
-        tex = np.stack([reader.get(int(f))["texture"].astype(np.float32) for f in frames[i : i + batch_size]])
+        tex = np.stack([textures.get(int(f)) for f in frames[i : i + batch_size]])
         tex = torch.from_numpy(tex).permute(0, 3, 1, 2).contiguous().to(dev)  # [b, 3, S, S]
         out_lat.append(net.latents(tex, None)[0].float().cpu().numpy())  # [b, A, L]
     lat = np.concatenate(out_lat).astype(np.float32)
@@ -278,18 +276,6 @@ def prepare_model(model: AppearancePredictor, data: SequenceData, segments: list
     return {"train_frames": int(len(rows)), "latent_pca_explained_variance": kept / total if total > 0 else 1.0}
 
 
-def predictor_from_checkpoint(path: Path, device: str | torch.device = "cpu") -> AppearancePredictor:
-    """Rebuild a trained predictor from its checkpoint alone (slots and pose PCA are buffers)."""
-    state = load_checkpoint(path)
-    sd = state["modules"]["predictor"]
-    # checkpoints written before ``residual`` existed predicted ``mean + scale * head``
-    cfg = PredictorConfig(**{"residual": False, **state["config"]["model"]})
-    pca = (sd["pose_pca_mean"], sd["pose_pca_basis"], sd["pose_pca_limit"]) if "pose_pca_basis" in sd else None
-    m = AppearancePredictor(cfg, sd["latent_mean"].shape[0], sd["pose_slots"], int(state["config"]["pose_dim"]), pca)
-    m.load_state_dict(sd)
-    return m.to(device).eval()
-
-
 # ----------------------------------------------------------------------------- evaluation
 @torch.no_grad()
 def evaluate_predictor(model: AppearancePredictor, data: SequenceData, segments: list[tuple[int, int]]) -> dict:
@@ -346,7 +332,7 @@ class PredictorTrainer:
         self.sampler = WindowSampler(train_segments, cfg.window)
         self.train_rows = torch.cat([torch.arange(s, e) for s, e in train_segments])
         self.optim = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-        train = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "model"}
+        train = config_to_json(cfg, exclude=("model",))
         self.config = {"train": train, "model": model.config.to_json(), "pose_dim": model.pose_dim,
                        "num_anchors": model.num_anchors, **(extra_config or {})}
         self.ckpt = self.out / "latest.pt"
@@ -408,11 +394,9 @@ def train_predictor(run: Path, cfg: PredictorTrainConfig, out: Path | None = Non
     """Targets -> model -> train (resumes) -> evaluate on the train and test segments (``eval.json``).
 
     ``force_out``: accept a non-empty ``out`` that is not a gsavatar predictor output (refused otherwise)."""
-    from gsavatar.train.runs import load_run
-
     loaded = load_run(run, device)
     claim_output_dir(predictor_dir(run, out), "predictor", force_out)
-    net, scene = loaded[0], loaded[1]
+    net, scene = loaded.net, loaded.scene
     dev = next(net.parameters()).device
     targets = extract_targets(run, out, loaded=loaded)
     d = predictor_dir(run, out)
@@ -424,7 +408,7 @@ def train_predictor(run: Path, cfg: PredictorTrainConfig, out: Path | None = Non
     print(f"[predictor] {info['train_frames']} train frames in {len(train_segs)} segments, latent PCA keeps "
           f"{100 * info['latent_pca_explained_variance']:.1f}% of the variance", flush=True)
     del net
-    trainer = PredictorTrainer(model, data, train_segs, cfg, d, {"run": str(Path(run).resolve()), "targets_step": loaded[3]})
+    trainer = PredictorTrainer(model, data, train_segs, cfg, d, {"run": str(Path(run).resolve()), "targets_step": loaded.step})
     summary = trainer.train()
     if not evaluate or trainer.step < cfg.steps:
         return summary

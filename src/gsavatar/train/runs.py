@@ -1,4 +1,5 @@
-"""Whole-run operations: train then evaluate, reload a run, export a PLY, render a turntable."""
+"""Whole-run operations: train then evaluate, export a PLY, render a turntable (loading a run back is
+:func:`gsavatar.runs.load_run`)."""
 
 from __future__ import annotations
 
@@ -8,17 +9,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gsavatar.data_schema.dataset import dataset_fingerprint
-from gsavatar.data_schema.errors import SchemaError
+from gsavatar.models.batch import FrameBatch
 from gsavatar.models.encoder import sample_at_uv
-from gsavatar.train.checkpoint import load_checkpoint
-from gsavatar.train.config import TrainConfig, from_json, resolve
-from gsavatar.train.data import ViewDataset, load_scene
+from gsavatar.models.net import AvatarNet
+from gsavatar.runs.config import TrainConfig, check_train_config, model_config
+from gsavatar.runs.latents import mean_train_latent
+from gsavatar.runs.load import LoadedRun, load_run
+from gsavatar.runs.views import orbit_cameras, render_views
+from gsavatar.train.data import ViewDataset
 from gsavatar.train.evaluate import evaluate_views, select_frames
-from gsavatar.train.trainer import (AvatarNet, Trainer, build_net, check_same_dataset, model_config, pick_device,
-                                   render_views)
+from gsavatar.train.trainer import Trainer
 from gsavatar.utils.io import atomic_write_json
-from gsavatar.utils.jsonio import read_json
 
 
 def lpips_or_none(cfg: TrainConfig, device):
@@ -29,27 +30,6 @@ def lpips_or_none(cfg: TrainConfig, device):
     return LPIPS(weights=cfg.lpips_weights).to(device)
 
 
-def check_train_config(cfg: TrainConfig) -> None:
-    """Refuse counts and scales the trainer cannot use (0 = the preset's value where allowed),
-    before anything is loaded or written. Raises ValueError naming the field."""
-    minimum = {"steps": 0, "batch_size": 0, "checkpoint_every": 0, "max_steps_this_run": 0, "num_workers": 0,
-               "log_every": 1, "eval_frames": 1, "correctives_step": -1}
-    for name, lo in minimum.items():
-        v = getattr(cfg, name)
-        if not isinstance(v, int) or v < lo:
-            raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
-    if not (np.isfinite(cfg.image_scale) and cfg.image_scale >= 0):
-        raise ValueError(f"image_scale must be > 0 (or 0 = preset), got {cfg.image_scale!r}")
-    if not (np.isfinite(cfg.basis_lr_scale) and cfg.basis_lr_scale >= 0):
-        raise ValueError(f"basis_lr_scale must be > 0 (or 0 = preset), got {cfg.basis_lr_scale!r}")
-    if not isinstance(cfg.vae_noise_step, int) or cfg.vae_noise_step < -2:
-        raise ValueError(f"vae_noise_step must be an integer >= -2 (-2 = preset, -1 = never), got {cfg.vae_noise_step!r}")
-    if not (np.isfinite(cfg.cache_max_gb) and cfg.cache_max_gb >= 0):
-        raise ValueError(f"cache_max_gb must be >= 0, got {cfg.cache_max_gb!r}")
-    if not 0 <= cfg.sh_increase_fraction <= 1:
-        raise ValueError(f"sh_increase_fraction must be in [0, 1], got {cfg.sh_increase_fraction!r}")
-
-
 def train_and_evaluate(cfg: TrainConfig, evaluate: bool = True, force_out: bool = False) -> dict:
     """Train (resuming) then evaluate; ``force_out``: accept a non-empty ``cfg.out`` that is not a gsavatar run."""
     check_train_config(cfg)
@@ -58,45 +38,19 @@ def train_and_evaluate(cfg: TrainConfig, evaluate: bool = True, force_out: bool 
     if tr.rank == 0:
         print(f"[train] {summary['step']} steps in {summary['seconds']:.0f}s this run")
     if evaluate and tr.rank == 0 and tr.step >= tr.cfg.steps:
-        res = evaluate_run(tr.out, tr.cfg.eval_frames, loaded=(tr.net, tr.scene, tr.cfg))
+        res = evaluate_run(tr.out, tr.cfg.eval_frames, loaded=LoadedRun(tr.net, tr.scene, tr.cfg, tr.step))
         print(json.dumps(res, indent=1))
         return res
     return summary
 
 
-def load_run(run: Path, device: str = "auto") -> tuple[AvatarNet, object, TrainConfig, int]:
-    """Rebuild the net of a run from its config and latest checkpoint."""
-    run = Path(run)
-    cfg_path = run / "config.json"
-    if not cfg_path.exists():
-        raise SchemaError(cfg_path, "", "not a training run (config.json missing)")
-    saved = read_json(cfg_path)  # strict: duplicate keys, NaN, deep nesting, FIFOs are refused naming the file
-    if not isinstance(saved, dict) or "train" not in saved:
-        raise SchemaError(cfg_path, "train", "missing (not the config.json of a gsavatar run)")
-    cfg = from_json(saved["train"], cfg_path)
-    try:
-        check_train_config(cfg)
-    except ValueError as e:
-        raise SchemaError(cfg_path, "train", str(e)) from None
-    cfg = resolve(cfg)
-    dev = pick_device(device)
-    scene = load_scene(cfg.dataset)
-    net = build_net(scene, model_config(cfg), cfg.seed).to(dev)
-    ckpt = run / "checkpoints" / "latest.pt"
-    state = load_checkpoint(ckpt, saved, strict_config_keys=("model",))
-    check_same_dataset(ckpt, state["config"], cfg.dataset, dataset_fingerprint(cfg.dataset))
-    net.load_state_dict(state["modules"]["net"])
-    net.eval()
-    return net, scene, cfg, int(state["step"])
-
-
-def evaluate_run(run: Path, eval_frames: int = 8, loaded: tuple | None = None) -> dict:
+def evaluate_run(run: Path, eval_frames: int = 8, loaded: LoadedRun | None = None) -> dict:
     """Held-out cameras of training frames ("novel view") and held-out frames ("novel pose"), encoder latents.
 
-    ``loaded``: (net, scene, cfg) of a live trainer, to skip reloading the checkpoint.
+    ``loaded``: the run as a live trainer holds it, to skip reloading the checkpoint.
     """
     run = Path(run)
-    net, scene, cfg = loaded if loaded is not None else load_run(run)[:3]
+    net, scene, cfg, _ = loaded if loaded is not None else load_run(run)
     dev = next(net.parameters()).device
     lp = lpips_or_none(cfg, dev)
     splits = scene.capture.splits
@@ -129,19 +83,6 @@ def evaluate_run(run: Path, eval_frames: int = 8, loaded: tuple | None = None) -
 
 
 @torch.no_grad()
-def mean_train_latent(net: AvatarNet, scene, device: torch.device, texture_source: str = "projected") -> torch.Tensor:
-    """Mean of the encoder's per-anchor latents (mu) over the training frames.  # [A, L]"""
-    data = ViewDataset(scene, "train", cameras=scene.capture.splits["train"].cameras[:1], texture_source=texture_source)
-    net.eval()
-    total = None
-    for f in data.frames:
-        tex = data.frame_inputs(f)["texture"][None].to(device)
-        lat = net.latents(tex, None)[0][0]
-        total = lat if total is None else total + lat
-    return total / len(data.frames)
-
-
-@torch.no_grad()
 def run_frame_dependence(net: AvatarNet, scene, texture_source: str = "projected", num_frames: int = 24) -> dict | None:
     """Per-Gaussian colour (SH band 0) spread over training frames vs the ground-truth albedo's at the
     Gaussians' UVs (:func:`gsavatar.metrics.temporal.frame_dependence`); None without ``gt/textures``."""
@@ -161,8 +102,7 @@ def run_frame_dependence(net: AvatarNet, scene, texture_source: str = "projected
     pred, gt = [], []
     for f in frames:
         b = {k: v[None].to(dev) for k, v in data.frame_inputs(f).items()}
-        face = b["face"] if b["face"].numel() else None
-        out = net(b["pose"], b["root_rotation"], b["root_translation"], face, b.get("texture"), None, 0, True).avatar
+        out = net(FrameBatch.from_dict(b), sh_degree=0).avatar
         pred.append((out.sh[0, :, 0] * SH_C0 + 0.5).clamp(0, 1).cpu())  # [G, 3]
         tex = torch.from_numpy(data.gt_texture(f)).permute(2, 0, 1)[None]  # [1, 3, S, S]
         gt.append(sample_at_uv(tex, uv_t)[0])  # [G, 3]
@@ -178,8 +118,7 @@ def posed_output(net: AvatarNet, scene, frame: int, sh_degree: int):
     b = {k: (v[None] if torch.is_tensor(v) else v) for k, v in data.frame_inputs(frame).items()}
     dev = next(net.parameters()).device
     b = {k: v.to(dev) for k, v in b.items()}
-    face = b["face"] if b["face"].numel() else None
-    return net(b["pose"], b["root_rotation"], b["root_translation"], face, b.get("texture"), None, sh_degree, True).avatar
+    return net(FrameBatch.from_dict(b), sh_degree=sh_degree).avatar
 
 
 def export_ply(run: Path, frame: int, out: Path) -> None:
@@ -189,23 +128,6 @@ def export_ply(run: Path, frame: int, out: Path) -> None:
     if not 0 <= frame < scene.capture.num_frames:
         raise ValueError(f"frame must be in [0, {scene.capture.num_frames}), got {frame}")
     export_frame_ply(out, posed_output(net, scene, frame, model_config(cfg).sh_degree), frame=0)
-
-
-def orbit_cameras(center: np.ndarray, radius: float, height: float, n: int, width: int, height_px: int,
-                  fov_deg: float = 40.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """``n`` cameras on a horizontal circle looking at ``center``. -> viewmats [n,4,4], Ks [n,3,3]."""
-    from gsavatar.geometry.camera import look_at
-
-    f = 0.5 * height_px / np.tan(np.radians(fov_deg) / 2)
-    K = np.array([[f, 0, width / 2 - 0.5], [0, f, height_px / 2 - 0.5], [0, 0, 1]], np.float32)
-    vms = []
-    for a in np.linspace(0, 2 * np.pi, n, endpoint=False):
-        eye = center + np.array([radius * np.sin(a), height, radius * np.cos(a)])
-        R, T = look_at(eye, center)
-        M = np.eye(4, dtype=np.float32)
-        M[:3, :3], M[:3, 3] = R, T
-        vms.append(M)
-    return torch.from_numpy(np.stack(vms)), torch.from_numpy(np.repeat(K[None], n, 0))
 
 
 @torch.no_grad()

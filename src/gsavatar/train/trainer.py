@@ -1,5 +1,6 @@
-"""The avatar trainer: loop, optimiser, checkpoints, DDP. Model math lives in gsavatar.models,
-losses in gsavatar.train.losses, data in gsavatar.train.data."""
+"""The avatar trainer: loop, optimiser, checkpoints, DDP. Model math lives in gsavatar.models (the net
+in gsavatar.models.net), losses in gsavatar.train.losses, data in gsavatar.train.data, the run's config
+and checkpoint format in gsavatar.runs."""
 
 from __future__ import annotations
 
@@ -7,103 +8,26 @@ import json
 import os
 import time
 from pathlib import Path
-from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
 from torch.utils.data import DataLoader
 
-from gsavatar.data_schema import SchemaError
 from gsavatar.data_schema.dataset import dataset_fingerprint
-from gsavatar.models.avatar import AvatarOutput, GaussianAvatar
-from gsavatar.models.config import ModelConfig, model_preset, variant_config
-from gsavatar.models.encoder import AppearanceEncoder, LatentNorm, sample_at_uv
-from gsavatar.render import rasterize
+from gsavatar.data_schema.prepared import load_scene
+from gsavatar.models.batch import FrameBatch
+from gsavatar.models.config import LearningRates
+from gsavatar.models.net import build_net
+from gsavatar.runs.checkpoint import check_same_dataset, load_checkpoint, resume_hint, save_checkpoint
+from gsavatar.runs.config import TrainConfig, model_config, resolve, to_json
+from gsavatar.runs.load import pick_device
+from gsavatar.runs.views import render_views
 from gsavatar.train import losses as L
-from gsavatar.train.checkpoint import load_checkpoint, resume_hint, save_checkpoint
-from gsavatar.train.config import TrainConfig, resolve, to_json
-from gsavatar.train.data import PreparedScene, ViewDataset, load_scene
+from gsavatar.train.data import ViewDataset
 from gsavatar.train.sampler import StepBatchSampler, step_generator
 from gsavatar.utils.cli import set_resume_hint
 from gsavatar.utils.io import atomic_write_json, atomic_write_text
 from gsavatar.utils.outdir import claim_output_dir
-
-
-class NetOutput(NamedTuple):
-    avatar: AvatarOutput
-    mu: Tensor | None  # [B, L, h, w] posterior mean of the latent map (None without latents)
-    logvar: Tensor | None  # [B, L, h, w]
-
-
-class AvatarNet(nn.Module):
-    """Avatar + appearance encoder behind one forward, so DDP sees every parameter."""
-
-    def __init__(self, avatar: GaussianAvatar, encoder: AppearanceEncoder | None, anchor_uv: Tensor) -> None:
-        super().__init__()
-        self.avatar = avatar
-        self.encoder = encoder
-        self.register_buffer("anchor_uv", anchor_uv)  # [A, 2] OBJ convention
-        self.latent_norm = None
-        if encoder is not None and avatar.config.latent_norm:
-            self.latent_norm = LatentNorm(anchor_uv.shape[0], encoder.latent_dim)
-
-    def latents(self, texture: Tensor, eps: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
-        """texture [B,3,S,S] -> per-anchor latents [B,A,L], mu, logvar. eps [B,L,h,w] = VAE noise (None: use mu).
-
-        With ``latent_norm`` the latents are standardised per anchor and channel over frames (the running
-        statistics update in training mode); every consumer (avatar, predictor targets, driving) sees that space.
-        """
-        enc = self.encoder(texture)
-        z = enc.mu if eps is None else enc.mu + torch.exp(0.5 * enc.logvar) * eps
-        lat = sample_at_uv(z, self.anchor_uv)
-        if self.latent_norm is not None:
-            lat = self.latent_norm(lat)
-        return lat, enc.mu, enc.logvar
-
-    def forward(self, pose: Tensor, root_rotation: Tensor, root_translation: Tensor, face: Tensor | None,
-                texture: Tensor | None, eps: Tensor | None, sh_degree: int, correctives: bool,
-                latents: Tensor | None = None) -> NetOutput:
-        mu = logvar = None
-        if self.encoder is not None and latents is None:
-            latents, mu, logvar = self.latents(texture, eps)
-        out = self.avatar(pose, root_rotation, root_translation, face, latents, sh_degree=sh_degree, correctives=correctives)
-        return NetOutput(out, mu, logvar)
-
-
-def pick_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
-
-
-def model_config(cfg: TrainConfig) -> ModelConfig:
-    return variant_config(model_preset(cfg.preset), cfg.variant)
-
-
-def build_net(scene: PreparedScene, mcfg: ModelConfig, seed: int) -> AvatarNet:
-    torch.manual_seed(seed)
-    avatar = GaussianAvatar(scene.hierarchy, scene.masks, scene.capture.rig, scene.pca_local, scene.pca_global, mcfg,
-                            face_dim=scene.face_dim, seed=seed)
-    if avatar.config.input_norm:
-        m = scene.capture.motion
-        frames = scene.capture.splits["train"].frames
-        face = torch.from_numpy(m.face[frames]).float() if m.face is not None else None
-        avatar.set_input_stats(torch.from_numpy(m.pose[frames]).float(), face)
-    encoder = AppearanceEncoder(latent_dim=mcfg.latent_dim) if mcfg.use_latent else None
-    uv = torch.from_numpy(scene.hierarchy.anchors.uv).float()
-    return AvatarNet(avatar, encoder, uv)
-
-
-def render_views(out: AvatarOutput, viewmats: Tensor, Ks: Tensor, width: int, height: int, backgrounds: Tensor,
-                 sh_degree: int, backend: str) -> tuple[Tensor, Tensor]:
-    """Render item i of the batch from its own camera. -> colors [B,3,h,w], alphas [B,1,h,w]."""
-    cols, alps = [], []
-    for i in range(out.means.shape[0]):
-        r = rasterize(out.means[i], out.quats[i], out.scales[i], out.opacities[i], out.sh[i], viewmats[i : i + 1],
-                      Ks[i : i + 1], width, height, backgrounds=backgrounds[i : i + 1], sh_degree=sh_degree, backend=backend)
-        cols.append(r.colors[0].permute(2, 0, 1))
-        alps.append(r.alphas[0].permute(2, 0, 1))
-    return torch.stack(cols), torch.stack(alps)
 
 
 def trim_log(path: Path, step: int) -> None:
@@ -119,23 +43,6 @@ def trim_log(path: Path, step: int) -> None:
         except (ValueError, KeyError, TypeError, RecursionError):  # torn or foreign lines are dropped
             continue
     atomic_write_text(path, "".join(k + "\n" for k in keep))
-
-
-def check_same_dataset(ckpt: Path, saved: dict, dataset: Path, dataset_id: str) -> None:
-    """Refuse a checkpoint trained on another dataset than ``dataset`` (content id ``dataset_id``,
-    :func:`gsavatar.data_schema.dataset.dataset_fingerprint`): another subject, or another preparation,
-    now at the same path. Checkpoints written before ``dataset_id`` existed are compared by resolved path.
-    Raises SchemaError naming ``ckpt`` and the field."""
-    saved_id = saved.get("dataset_id")
-    if saved_id is not None and saved_id != dataset_id:
-        raise SchemaError(ckpt, "config.dataset_id", f"checkpoint was trained on another dataset (content "
-                          f"{str(saved_id)[:12]}..., {dataset} now holds {dataset_id[:12]}...): the dataset was "
-                          f"replaced or re-prepared; train a new run (another --out)")
-    if saved_id is None:
-        old = Path(saved["train"]["dataset"])
-        if old.resolve() != Path(dataset).resolve():
-            raise SchemaError(ckpt, "config.train.dataset", f"checkpoint has {str(old)!r}, this run has "
-                              f"{str(dataset)!r}: it belongs to another configuration")
 
 
 class Trainer:
@@ -159,12 +66,13 @@ class Trainer:
         self.ddp = self.net
         if self.world > 1:
             self.ddp = nn.parallel.DistributedDataParallel(self.net, find_unused_parameters=True)
-        groups = self.net.avatar.param_groups()
+        lrs = LearningRates()
+        groups = self.net.avatar.param_groups(lrs)
         for g in groups:  # CPU presets: faster corrective bases (TrainConfig.basis_lr_scale)
             if g["name"].endswith("_basis"):
                 g["lr"] *= self.cfg.basis_lr_scale
         if self.net.encoder is not None:
-            groups += self.net.encoder.param_groups()
+            groups += self.net.encoder.param_groups(lrs)
         # fused: one kernel per parameter instead of ~10 passes over the ~15M basis scalars (55 -> 10 ms per
         # step on one CPU thread); the same update up to rounding.
         self.optim = torch.optim.AdamW(groups, eps=1e-15, betas=(0.9, 0.999),
@@ -186,9 +94,7 @@ class Trainer:
 
     # ------------------------------------------------------------------ state
     def config_json(self) -> dict:
-        return {"train": to_json(self.cfg), "model": self.mcfg.to_json() if hasattr(self.mcfg, "to_json") else
-                {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.mcfg.__dict__.items()},
-                "dataset_id": self.dataset_id}
+        return {"train": to_json(self.cfg), "model": self.mcfg.to_json(), "dataset_id": self.dataset_id}
 
     def _resume(self) -> None:
         # The dataset is identified by content (stage configs + file checksums), not by how its path was spelt;
@@ -227,11 +133,9 @@ class Trainer:
             S = b["texture"].shape[-1]
             h = S // self.net.encoder.downsample
             eps = torch.stack([torch.randn(self.mcfg.latent_dim, h, h, generator=g) for g in gens]).to(dev)
-        face = b["face"] if b["face"].numel() else None
         sh = self.sh_degree(step)
         correctives = step >= self.cfg.correctives_step
-        net_out = self.ddp(b["pose"], b["root_rotation"], b["root_translation"], face, b.get("texture"), eps, sh,
-                           correctives)
+        net_out = self.ddp(FrameBatch.from_dict(b), sh_degree=sh, correctives=correctives, eps=eps)
         bg = self.backgrounds(gens)
         H, W = b["image"].shape[-2:]
         pred, alpha = render_views(net_out.avatar, b["viewmat"], b["K"], W, H, bg, sh, self.cfg.backend)

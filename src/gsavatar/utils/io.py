@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gsavatar.data_schema.errors import SchemaError
+from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.jsonio import is_int, parse_json_text
 
 

@@ -3,18 +3,19 @@
 Python's ``json`` accepts things that are almost never what the author meant: a key given twice
 (the last one silently wins), ``NaN``/``Infinity`` literals, nesting deep enough to overflow the
 parser's recursion, any file size. :func:`read_json` refuses each of them with a
-:class:`~gsavatar.data_schema.errors.SchemaError` naming the file (and the key or line). The type
+:class:`~gsavatar.utils.errors.SchemaError` naming the file (and the key or line). The type
 helpers refuse ``true``/``false`` where a number is expected (in Python ``bool`` is an ``int``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import stat
-from pathlib import Path
+from pathlib import Path, PurePath
 
-from gsavatar.data_schema.errors import SchemaError
+from gsavatar.utils.errors import SchemaError
 
 MAX_JSON_BYTES = 64 << 20
 """Largest JSON file read (64 MiB: a calibration of thousands of cameras is a few MB)."""
@@ -105,3 +106,18 @@ def is_int(v) -> bool:
 def is_number(v) -> bool:
     """A finite JSON number (``true``/``false`` are not)."""
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def config_to_json(obj, exclude: tuple[str, ...] = ()):
+    """Plain-JSON form of a config, the one serialisation of every config we record (run, model, predictor,
+    prep stage, synthetic capture): dataclasses become dicts of their fields (recursively), tuples lists and
+    paths strings; ``exclude`` drops top-level fields. Other values are returned as they are."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: config_to_json(getattr(obj, f.name)) for f in dataclasses.fields(obj) if f.name not in exclude}
+    if isinstance(obj, dict):
+        return {k: config_to_json(v) for k, v in obj.items() if k not in exclude}
+    if isinstance(obj, (list, tuple)):
+        return [config_to_json(v) for v in obj]
+    if isinstance(obj, PurePath):
+        return str(obj)
+    return obj

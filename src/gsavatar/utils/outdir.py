@@ -18,7 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Literal
 
-from gsavatar.data_schema.errors import SchemaError
+from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.io import atomic_write_json
 from gsavatar.utils.jsonio import read_json
 from gsavatar.utils.paths import add_output_root

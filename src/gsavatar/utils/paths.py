@@ -21,7 +21,7 @@ import re
 from collections.abc import Iterator
 from pathlib import Path
 
-from gsavatar.data_schema.errors import SchemaError
+from gsavatar.utils.errors import SchemaError
 
 MAX_NAME = 128
 """Longest name accepted (camera, joint, parameter, split)."""

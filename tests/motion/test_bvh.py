@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gsavatar.data_schema.errors import SchemaError
-from gsavatar.synth.bvh import (
+from gsavatar.utils.errors import SchemaError
+from gsavatar.motion.bvh import (
     bvh_global_transforms,
     bvh_joint_positions,
     bvh_local_transforms,

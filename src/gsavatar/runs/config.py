@@ -1,17 +1,50 @@
-"""Training configuration: typed dataclasses with one docstring per field, named presets."""
+"""A run's configuration (``RUN/config.json`` ``"train"``): typed dataclasses with one docstring per
+field, named presets, and its strict JSON reader.
+
+It lives below :mod:`gsavatar.train` because a run is read by more than the trainer: run loading and
+driving (:mod:`gsavatar.runs.load`, :mod:`gsavatar.drive`) rebuild the model from it.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import typing
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Literal
 
-from gsavatar.data_schema.errors import SchemaError
-from gsavatar.models.config import PresetName, VariantName
-from gsavatar.train.losses import LossWeights
-from gsavatar.utils.jsonio import is_int, is_number
+import numpy as np
+
+from gsavatar.models.config import ModelConfig, PresetName, VariantName, model_preset, variant_config
+from gsavatar.utils.errors import SchemaError
+from gsavatar.utils.jsonio import config_to_json, is_int, is_number
+
+
+@dataclass
+class LossWeights:
+    """Weights of the training loss terms (defaults: the paper's, Sec. 4 "Training Details")."""
+
+    l1: float = 1.0
+    """Photometric L1 between the rendered and the ground-truth image."""
+    lpips: float = 0.1
+    """Perceptual LPIPS distance (metric named by ``LPIPS.lpips_name``)."""
+    opac: float = 0.5
+    """Opacity regulariser: pushes accumulated alpha to 1 inside the eroded foreground mask."""
+    scale: float = 1.0
+    """Scale regulariser: penalises Gaussians whose largest axis exceeds a threshold."""
+    cpt: float = 0.5
+    """Control-point smoothness: displacement difference to the n (paper: 5) nearest control points."""
+    kl: float = 1e-6
+    """KL divergence of the appearance latent posterior to N(0, I)."""
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if not isinstance(v, (int, float)) or not v >= 0:
+                raise ValueError(f"LossWeights.{f.name} must be a number >= 0, got {v!r}")
+
+    def as_dict(self) -> dict[str, float]:
+        return {f.name: float(getattr(self, f.name)) for f in fields(self)}
 
 
 @dataclass
@@ -23,7 +56,8 @@ class TrainConfig:
     preset: PresetName = "tiny"
     """Model and schedule size: tiny (tests, <2 min CPU), small (demo, minutes on CPU), paper (GPU)."""
     variant: VariantName = "ours"
-    """Model variant: ``ours``, the baseline ``mmlps_dagger``, or the ablations ``wo_local_pose``/``wo_local_pca``."""
+    """Model variant: ``ours`` or one of the paper's ablations and baselines, a name of the table
+    :data:`gsavatar.models.config.VARIANTS` (the choices ``--help`` lists)."""
     steps: int = 0
     """Optimisation steps (0 = preset)."""
     batch_size: int = 0
@@ -120,9 +154,35 @@ def resolve(cfg: TrainConfig) -> TrainConfig:
     )
 
 
+def model_config(cfg: TrainConfig) -> ModelConfig:
+    """The model configuration of a run: its preset with its variant applied."""
+    return variant_config(model_preset(cfg.preset), cfg.variant)
+
+
+def check_train_config(cfg: TrainConfig) -> None:
+    """Refuse counts and scales the trainer cannot use (0 = the preset's value where allowed),
+    before anything is loaded or written. Raises ValueError naming the field."""
+    minimum = {"steps": 0, "batch_size": 0, "checkpoint_every": 0, "max_steps_this_run": 0, "num_workers": 0,
+               "log_every": 1, "eval_frames": 1, "correctives_step": -1}
+    for name, lo in minimum.items():
+        v = getattr(cfg, name)
+        if not isinstance(v, int) or v < lo:
+            raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
+    if not (np.isfinite(cfg.image_scale) and cfg.image_scale >= 0):
+        raise ValueError(f"image_scale must be > 0 (or 0 = preset), got {cfg.image_scale!r}")
+    if not (np.isfinite(cfg.basis_lr_scale) and cfg.basis_lr_scale >= 0):
+        raise ValueError(f"basis_lr_scale must be > 0 (or 0 = preset), got {cfg.basis_lr_scale!r}")
+    if not isinstance(cfg.vae_noise_step, int) or cfg.vae_noise_step < -2:
+        raise ValueError(f"vae_noise_step must be an integer >= -2 (-2 = preset, -1 = never), got {cfg.vae_noise_step!r}")
+    if not (np.isfinite(cfg.cache_max_gb) and cfg.cache_max_gb >= 0):
+        raise ValueError(f"cache_max_gb must be >= 0, got {cfg.cache_max_gb!r}")
+    if not 0 <= cfg.sh_increase_fraction <= 1:
+        raise ValueError(f"sh_increase_fraction must be in [0, 1], got {cfg.sh_increase_fraction!r}")
+
+
 def to_json(cfg: TrainConfig) -> dict:
-    d = dataclasses.asdict(cfg)
-    return {k: (str(v) if isinstance(v, Path) else v) for k, v in d.items()}
+    """Plain-JSON form (``config.json`` of a run; :func:`from_json` reads it back)."""
+    return config_to_json(cfg)
 
 
 def from_json(d: dict, file: str | Path, prefix: str = "train") -> TrainConfig:

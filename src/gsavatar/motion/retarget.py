@@ -1,5 +1,5 @@
 """Retarget BVH motion capture (e.g. CMU) onto a gsavatar :class:`Rig` (e.g. the Anny
-``cmu_mb`` body from :mod:`gsavatar.synth.body`).
+``cmu_mb`` body from :mod:`gsavatar.synth.body`). Used by the synthetic captures and by driving.
 
 Method (per frame, rotations as 3x3 matrices)::
 
@@ -19,9 +19,9 @@ lengths, thigh + shin) mapped by ``C``, shifted vertically so the lowest foot jo
 the clip matches our rest foot height (feet stay on the ground), and horizontally so
 the first output frame starts at x = z = 0 (``center_xz``).
 
-Frame-rate change: local rotations are resampled by quaternion slerp, the root
-translation linearly; output frame k is at time ``k / fps_out`` from the first source
-frame, so for 120 -> 30 fps output frame k equals source frame 4k exactly.
+Frame-rate change (:mod:`gsavatar.motion.resample`): local rotations are resampled by
+quaternion slerp, the root translation linearly; output frame k is at time ``k / fps_out``
+from the first source frame, so for 120 -> 30 fps output frame k equals source frame 4k exactly.
 """
 
 from __future__ import annotations
@@ -32,11 +32,12 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
 from gsavatar.data_schema.limits import check_resampled_frames
 from gsavatar.data_schema.rig import Rig
-from gsavatar.synth.bvh import BvhMotion, bvh_global_transforms, bvh_rest_positions, read_bvh
+from gsavatar.motion.bvh import BvhMotion, bvh_global_transforms, bvh_rest_positions, read_bvh
+from gsavatar.motion.resample import lerp_frames, resample_times, slerp_matrices
 
 CMU_NAME_MAP: dict[str, str] = {"LeftHandFinger1": "LFingers", "RightHandFinger1": "RFingers"}
 """Our (Anny cmu_mb) joint name -> CMU BVH joint name, where they differ."""
@@ -277,20 +278,10 @@ def retarget_bvh(
     if fps <= 0:
         raise ValueError(f"fps_out must be > 0, got {fps_out}")
     if fps_out is not None and abs(fps - fps_in) > 1e-9 and F > 1:
-        t_src = np.arange(F) / fps_in
         check_resampled_frames(F, fps_in, fps, bvh.path or "BVH", "MOTION")
-        n_out = int(math.floor(t_src[-1] * fps + 1e-6)) + 1
-        t_out = np.minimum(np.arange(n_out) / fps, t_src[-1])
-        # exact source frames where output times coincide (e.g. 120 -> 30 fps)
-        L_out = np.empty((n_out, J, 3, 3))
-        for j in range(J):
-            sl = Slerp(t_src, Rotation.from_matrix(L[:, j]))
-            L_out[:, j] = sl(t_out).as_matrix()
-        exact = np.abs(t_out * fps_in - np.round(t_out * fps_in)) < 1e-6
-        if exact.any():
-            L_out[exact] = L[np.round(t_out[exact] * fps_in).astype(int)]
-        root_pos = np.stack([np.interp(t_out, t_src, root_pos[:, k]) for k in range(3)], 1)
-        L = L_out
+        times = resample_times(F, fps_in, fps)
+        L = slerp_matrices(L, times)  # exact source frames where output times coincide (e.g. 120 -> 30 fps)
+        root_pos = lerp_frames(root_pos, times)
     if center_xz:
         root_pos = root_pos - np.array([root_pos[0, 0], 0.0, root_pos[0, 2]])
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-from gsavatar.data_schema.errors import SchemaError
+from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.io import atomic_write_bytes
 from gsavatar.utils.jsonio import parse_json_text
 
@@ -78,6 +78,23 @@ def load_checkpoint(path: str | Path, config: dict | None = None, strict_config_
             if a != b:
                 raise SchemaError(path, f"config.{key}", f"checkpoint has {a!r}, this run has {b!r}: it belongs to another configuration")
     return state
+
+
+def check_same_dataset(ckpt: Path, saved: dict, dataset: Path, dataset_id: str) -> None:
+    """Refuse a checkpoint trained on another dataset than ``dataset`` (content id ``dataset_id``,
+    :func:`gsavatar.data_schema.dataset.dataset_fingerprint`): another subject, or another preparation,
+    now at the same path. Checkpoints written before ``dataset_id`` existed are compared by resolved path.
+    Raises SchemaError naming ``ckpt`` and the field."""
+    saved_id = saved.get("dataset_id")
+    if saved_id is not None and saved_id != dataset_id:
+        raise SchemaError(ckpt, "config.dataset_id", f"checkpoint was trained on another dataset (content "
+                          f"{str(saved_id)[:12]}..., {dataset} now holds {dataset_id[:12]}...): the dataset was "
+                          f"replaced or re-prepared; train a new run (another --out)")
+    if saved_id is None:
+        old = Path(saved["train"]["dataset"])
+        if old.resolve() != Path(dataset).resolve():
+            raise SchemaError(ckpt, "config.train.dataset", f"checkpoint has {str(old)!r}, this run has "
+                              f"{str(dataset)!r}: it belongs to another configuration")
 
 
 def _get(d: dict, dotted: str):

@@ -32,7 +32,7 @@ Format (what is accepted)::
   rotation channels multiplied in the order they are listed (intrinsic rotations), the
   standard BVH convention (a ``Zrotation Yrotation Xrotation`` joint has ``R = Rz Ry Rx``).
 
-Malformed files raise :class:`~gsavatar.data_schema.errors.SchemaError` naming the
+Malformed files raise :class:`~gsavatar.utils.errors.SchemaError` naming the
 file and the line: truncated MOTION sections, rows with the wrong number of values,
 non-numeric or NaN/Inf values, bad channel names/counts, unbalanced braces, no frames
 (``Frames: 0``), a ``Frame Time`` outside [1/MAX_FPS, 1/MIN_FPS] s (the plausible frame rates of
@@ -50,7 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gsavatar.data_schema.errors import SchemaError
+from gsavatar.utils.errors import SchemaError
 from gsavatar.data_schema.limits import MAX_FPS, MIN_FPS
 
 POSITION_CHANNELS = ("Xposition", "Yposition", "Zposition")

@@ -1,0 +1,86 @@
+"""Load a trained run (``avatar-train avatar``/``predictor`` output) back into models.
+
+    RUN/config.json               {"train": TrainConfig, "model": ModelConfig, "dataset_id"}
+    RUN/checkpoints/latest.pt     the avatar net (:mod:`gsavatar.runs.checkpoint`)
+    RUN/predictor/latest.pt       the appearance predictor, when one was trained
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import NamedTuple
+
+import torch
+
+from gsavatar.data_schema.dataset import dataset_fingerprint
+from gsavatar.data_schema.prepared import PreparedScene, load_scene
+from gsavatar.models.net import AvatarNet, build_net
+from gsavatar.models.predictor import AppearancePredictor, PredictorConfig
+from gsavatar.runs.checkpoint import check_same_dataset, load_checkpoint
+from gsavatar.runs.config import TrainConfig, check_train_config, from_json, model_config, resolve
+from gsavatar.utils.errors import SchemaError
+from gsavatar.utils.jsonio import read_json
+
+
+class LoadedRun(NamedTuple):
+    """A run rebuilt from disk by :func:`load_run`."""
+
+    net: AvatarNet
+    """The avatar net with the latest checkpoint's weights, in eval mode."""
+    scene: PreparedScene
+    """The prepared dataset the run was trained on."""
+    config: TrainConfig
+    """The run's training configuration, presets resolved."""
+    step: int
+    """Optimisation step of the checkpoint."""
+
+
+def pick_device(name: str) -> torch.device:
+    """``auto`` -> CUDA if available, else CPU; any other name as torch spells it (``cpu``, ``cuda:1``)."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def load_run(run: str | Path, device: str = "auto") -> LoadedRun:
+    """Rebuild the net of a run from its config and latest checkpoint (in eval mode, on ``device``:
+    ``auto`` = CUDA if available). SchemaError names the file and field of a run that is not one."""
+    run = Path(run)
+    cfg_path = run / "config.json"
+    if not cfg_path.exists():
+        raise SchemaError(cfg_path, "", "not a training run (config.json missing)")
+    saved = read_json(cfg_path)  # strict: duplicate keys, NaN, deep nesting, FIFOs are refused naming the file
+    if not isinstance(saved, dict) or "train" not in saved:
+        raise SchemaError(cfg_path, "train", "missing (not the config.json of a gsavatar run)")
+    cfg = from_json(saved["train"], cfg_path)
+    try:
+        check_train_config(cfg)
+    except ValueError as e:
+        raise SchemaError(cfg_path, "train", str(e)) from None
+    cfg = resolve(cfg)
+    dev = pick_device(device)
+    scene = load_scene(cfg.dataset)
+    net = build_net(scene, model_config(cfg), cfg.seed).to(dev)
+    ckpt = run / "checkpoints" / "latest.pt"
+    state = load_checkpoint(ckpt, saved, strict_config_keys=("model",))
+    check_same_dataset(ckpt, state["config"], cfg.dataset, dataset_fingerprint(cfg.dataset))
+    net.load_state_dict(state["modules"]["net"])
+    net.eval()
+    return LoadedRun(net, scene, cfg, int(state["step"]))
+
+
+def run_predictor_path(run: str | Path) -> Path:
+    """Where ``avatar-train predictor`` writes the run's appearance predictor."""
+    return Path(run) / "predictor" / "latest.pt"
+
+
+def predictor_from_checkpoint(path: Path, device: str | torch.device = "cpu") -> AppearancePredictor:
+    """Rebuild a trained predictor from its checkpoint alone (slots and pose PCA are buffers)."""
+    state = load_checkpoint(path)
+    sd = state["modules"]["predictor"]
+    # checkpoints written before ``residual`` existed predicted ``mean + scale * head``
+    cfg = PredictorConfig(**{"residual": False, **state["config"]["model"]})
+    pca = (sd["pose_pca_mean"], sd["pose_pca_basis"], sd["pose_pca_limit"]) if "pose_pca_basis" in sd else None
+    m = AppearancePredictor(cfg, sd["latent_mean"].shape[0], sd["pose_slots"], int(state["config"]["pose_dim"]), pca)
+    m.load_state_dict(sd)
+    return m.to(device).eval()
