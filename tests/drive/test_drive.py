@@ -1,5 +1,6 @@
 """avatar-drive: motion loading (npz / capture / BVH), frame-rate resampling, streaming == batch,
-metrics + figure 7, the CLI end to end, and bad inputs (exit code 2, message names file + field)."""
+latent sources (the drive-mode table, a mode defined here), metrics + figure 7, the CLI end to end,
+the latent-source comparison figure, and bad inputs (exit code 2, message names file + field)."""
 
 from __future__ import annotations
 
@@ -13,9 +14,10 @@ from scipy.spatial.transform import Rotation
 
 from gsavatar.data_schema import SchemaError, load_capture
 from gsavatar.drive.cli import main
-from gsavatar.drive.driver import DriveConfig, Driver, motion_inputs
+from gsavatar.drive.driver import DriveConfig, Driver, FrameInputs, motion_inputs
 from gsavatar.drive.metrics import SequenceMetrics, measure_ramp_up, write_ramp_up
 from gsavatar.drive.motion import load_driving_motion
+from gsavatar.drive.sources import LATENT_SOURCES, DriveMode, LatentSource, ramp_up_modes
 from gsavatar.motion.resample import _joint_layouts, resample_motion
 from gsavatar.models.batch import FrameBatch
 from gsavatar.models.predictor import AppearancePredictor, PredictorConfig
@@ -203,6 +205,87 @@ def test_bvh_orbit_driving_and_ramp_up(loaded, tiny_run, tiny_capture, tmp_path)
     assert json.loads(js.read_text())["frames"] == 3 and cv2.imread(str(png)) is not None
 
 
+# --------------------------------------------------------------------------- latent sources
+@pytest.fixture
+def source_table():
+    """Sources registered by a test are unregistered after it."""
+    before = dict(LATENT_SOURCES)
+    yield LATENT_SOURCES
+    LATENT_SOURCES.clear()
+    LATENT_SOURCES.update(before)
+
+
+def test_adding_a_drive_mode_is_one_class(loaded, tiny_run, tiny_capture, source_table):
+    # A new drive mode, defined here without touching gsavatar: the class statement registers it.
+    class HoldFirst(LatentSource, mode="hold_first"):
+        """The encoder's latents of frame 0, held for the whole sequence."""
+
+        needs_texture = True
+
+        def texture_needed_at(self, t: int) -> bool:
+            return t == 0
+
+        def init(self, x: FrameInputs) -> None:
+            self.first = self.ctx.encode(x.texture)  # [A, L]
+
+        def next(self, x: FrameInputs, t: int) -> torch.Tensor:
+            return self.first
+
+    assert source_table["hold_first"] is HoldFirst and HoldFirst.mode == "hold_first"
+    net, scene, _, _ = loaded
+    motion = load_driving_motion(tiny_capture, scene.capture.rig, scene.capture.fps, count=4)
+    from gsavatar.drive.driver import texture_source
+
+    tex, asked = texture_source(motion, scene, None), []
+    d = Driver(tiny_run, DriveConfig(mode="hold_first", image_scale=0.25), loaded=loaded)  # needs no predictor
+    assert d.predictor is None and d.needs_textures
+    frames = d.drive(motion, lambda t: asked.append(t) or tex(t))
+    assert asked == [0]  # the texture of frame 0 only
+    enc = d.with_mode("encoder").drive(motion)  # the encoder's latents every frame, same cameras
+    assert all(torch.equal(f.latents, enc[0].latents) for f in frames)
+    assert torch.equal(frames[0].images["full01"], enc[0].images["full01"])
+    assert not torch.equal(frames[3].latents, enc[3].latents)
+    # ... and the ramp-up study measures it like the built-in modes
+    res = measure_ramp_up(d, motion, tex, frames=2, modes=("hold_first", "encoder"), with_images=False)
+    assert res["modes"]["hold_first"]["latent_l1"][0] == 0.0 and res["modes"]["hold_first"]["latent_l1"][1] > 0
+
+    with pytest.raises(ValueError, match="already registered"):
+        type("Again", (LatentSource,), {}, mode="hold_first")
+
+
+def test_drive_modes_come_from_one_table(loaded, tiny_run):
+    import typing
+
+    from gsavatar.drive.cli import DriveArgs
+
+    modes = ("predictor", "pose_init", "predictor_encoder_init", "reinit", "encoder")
+    assert tuple(LATENT_SOURCES) == modes and typing.get_args(DriveMode) == modes
+    assert typing.get_type_hints(DriveArgs)["mode"] == DriveMode  # the CLI's --mode choices
+    assert ramp_up_modes() == ("predictor", "pose_init", "predictor_encoder_init", "encoder")
+    with pytest.raises(ValueError, match="mode must be one of predictor/pose_init/"):
+        DriveConfig(mode="nope")
+    needs = {m: (c.needs_texture, c.needs_predictor) for m, c in LATENT_SOURCES.items()}
+    assert needs == {"predictor": (False, True), "pose_init": (False, True), "predictor_encoder_init": (True, True),
+                     "reinit": (True, True), "encoder": (True, False)}
+    pred = small_predictor(loaded.net)
+    d = Driver(tiny_run, DriveConfig(mode="reinit", reinit_every=3), loaded=loaded, predictor=pred)
+    assert [d.texture_needed_at(t) for t in range(7)] == [True, False, False, True, False, False, True]
+    assert [d.with_mode("predictor_encoder_init").texture_needed_at(t) for t in range(3)] == [True, False, False]
+    assert not d.with_mode("predictor").needs_textures
+    e = d.with_mode("encoder")  # a plain constructor call sharing the run and predictor
+    assert e.net is d.net and e.predictor is d.predictor and e.config.reinit_every == 3 and e.t == -1
+    with pytest.raises(ValueError, match="trained InitialLatentNet"):
+        d.with_mode("pose_init")  # the small predictor's initial net is untrained
+    no_pred = Driver(tiny_run, DriveConfig(mode="encoder"), loaded=loaded, predictor=None)
+    with pytest.raises(ValueError, match="needs a trained appearance predictor"):
+        no_pred.with_mode("predictor")
+
+    x = no_pred.check_inputs(FrameInputs(np.zeros(d.pose_dim), np.zeros(3), np.zeros(3)))  # the public input check
+    assert x.pose.dtype == torch.float32 and (x.face is None) == (d.face_dim == 0)
+    with pytest.raises(ValueError, match=r"root_rotation must be \[3\]"):
+        no_pred.check_inputs(FrameInputs(np.zeros(d.pose_dim), np.zeros(4), np.zeros(3)))
+
+
 def test_sequence_metrics_zero_error_when_render_is_the_ground_truth():
     g = torch.rand(3, 16, 16, 3)
     mask = torch.zeros(16, 16)
@@ -296,3 +379,30 @@ def test_cli_predictor_mode_loads_the_runs_trained_predictor(tiny_run, tiny_capt
     assert r.count_frames() == 2
     r.close()
     assert not (out / "frames").exists()
+
+
+def test_compare_figure_renders_each_latent_source(loaded, tiny_run, tiny_capture, tmp_path):
+    import cv2
+
+    from gsavatar.drive.compare import CompareArgs, compare
+
+    scene = loaded.scene
+    d = Driver(tiny_run, DriveConfig(mode="encoder", capture_cameras=("full01",), image_scale=0.5), loaded=loaded,
+               predictor=None)
+    motion = load_driving_motion(tiny_capture, scene.capture.rig, d.fps, split="test")
+    frames = d.drive(motion)
+    (tmp_path / "enc").mkdir()
+    np.savez(tmp_path / "enc" / "latents.npz", latents=torch.stack([f.latents for f in frames]).numpy())
+    out = tmp_path / "cmp.png"
+    info = compare(CompareArgs(run=tiny_run, out=out, drive=[f"encoder={tmp_path / 'enc'}"], frame=1, image_scale=0.5))
+    assert list(info["psnr_fg"]) == ["encoder", "mean latent"] and info["capture_frame"] == motion.gt.frames[1]
+    assert cv2.imread(str(out)) is not None and json.loads(out.with_suffix(".json").read_text())["camera"] == "full01"
+    from gsavatar.drive.metrics import load_ground_truth
+    from gsavatar.metrics.image import psnr
+
+    gt, mask = load_ground_truth(scene.capture, motion.gt.frames[1], ["full01"], 0.5, torch.zeros(3))["full01"]
+    m = (mask > 0.5)[None, None].expand(1, 3, *mask.shape)
+    want = float(psnr(frames[1].images["full01"].permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None], mask=m)[0])
+    if not torch.cuda.is_available():  # compare loads the run on CUDA when it can: another rasterizer there
+        assert info["psnr_fg"]["encoder"] == pytest.approx(want, abs=1e-6)  # the driver's render of those latents
+    assert np.isfinite(info["psnr_fg"]["encoder"])

@@ -25,7 +25,7 @@ import torch
 import tyro
 
 from gsavatar.data_schema.views import UndistortMaps
-from gsavatar.drive.driver import DriveConfig, Driver, load_predictor_for, motion_inputs, texture_source
+from gsavatar.drive.driver import DriveConfig, Driver, load_predictor_for, texture_source
 from gsavatar.utils.cli import run_reporting_errors
 from gsavatar.utils.io import atomic_path, atomic_save_npz, atomic_write_json, write_image
 from gsavatar.utils.outdir import claim_output_dir
@@ -113,9 +113,8 @@ def drive(args: DriveArgs) -> dict:
     if args.motion_fps < 0 or args.count < 0 or args.ramp_up < 0:
         raise ValueError("motion_fps, count and ramp_up must be >= 0")
     loaded = load_run(args.run, cfg.device)
-    predictor = "auto"
-    if loaded.net.avatar.latent_in and (cfg.mode != "encoder" or args.ramp_up):
-        predictor = load_predictor_for(args.run)
+    # the ramp-up drives the predictor modes too, whatever this drive's mode needs
+    predictor = load_predictor_for(args.run) if args.ramp_up and loaded.net.avatar.latent_in else "auto"
     d = Driver(args.run, cfg, loaded=loaded, predictor=predictor)
     scene = d.scene
     motion = load_driving_motion(args.motion, scene.capture.rig, d.fps, fps=args.motion_fps or None, start=args.start,
@@ -145,12 +144,10 @@ def drive(args: DriveArgs) -> dict:
     with atomic_path(video, suffix=".mp4") as tmp, progress_bar(f"avatar-drive {cfg.mode} ({T} frames)", T) as bar:
         writer = imageio.get_writer(tmp, fps=fps_video, macro_block_size=1, format="FFMPEG")
         try:
-            for t in range(T):
-                x = motion_inputs(motion, t, textures(t) if textures is not None and d.texture_needed_at(t) else None)
+            for fr in d.frames(motion, textures):
+                t = fr.t
                 if t == 0:
-                    d.start(x)
                     cams = [v.name for v in d.views]  # orbit views are placed by start()
-                fr = d.step(x)
                 latents.append(fr.latents.numpy())
                 gts = load_ground_truth(gt.capture, gt.frames[t], cams, cfg.image_scale, d.bg, maps) if gt is not None else {}
                 for c in cams:

@@ -74,7 +74,8 @@ def compare(args: CompareArgs) -> dict:
             got = f"{z['latents'].dtype} array of shape {list(z['latents'].shape)}" if "latents" in z else "nothing"
             raise SchemaError(path, "latents", f"expected a real [T, A, L] array, got {got}")
         sources[label] = np.asarray(z["latents"], np.float32)  # [T, A, L]
-    net, scene, tcfg, _ = load_run(args.run)
+    loaded = load_run(args.run)
+    net, scene, tcfg = loaded.net, loaded.scene, loaded.config
     if not net.avatar.latent_in:
         raise ValueError(f"{args.run}: the avatar has no appearance latents to compare")
     cap = scene.capture
@@ -83,7 +84,7 @@ def compare(args: CompareArgs) -> dict:
     if cam not in cap.cameras:
         raise ValueError(f"camera must be one of {sorted(cap.cameras)}, got {cam!r}")
     d = Driver(args.run, DriveConfig(mode="encoder", capture_cameras=(cam,), image_scale=args.image_scale),
-               loaded=(net, scene, tcfg), predictor=None)
+               loaded=loaded, predictor=None)
     motion = load_driving_motion(cap.root, cap.rig, d.fps, split="test")
     T = motion.num_frames
     for label, lat in sources.items():
@@ -94,7 +95,7 @@ def compare(args: CompareArgs) -> dict:
     d.use_capture_cameras(cap)
 
     def render(t: int, lat: torch.Tensor) -> torch.Tensor:
-        x = d._check(motion_inputs(motion, t))
+        x = d.check_inputs(motion_inputs(motion, t))
         return d.render(x, lat.to(dev))[0][cam]  # [H, W, 3]
 
     t = args.frame

@@ -7,22 +7,13 @@ Streaming API (live driving)::
     for x in frames:                # frame 0 first, then 1, 2, ...
         out = d.step(x)             # DriveFrame(latents [A, L], images {cam: [H, W, 3]}, alphas, t)
 
-``drive(motion)`` is exactly ``start`` + one ``step`` per frame, so batch == streaming.
+``drive(motion)`` / ``frames(motion)`` are exactly ``start`` + one ``step`` per frame, so batch ==
+streaming.
 
-Modes (latents of frame t; the predictor's semantics are those of
-:meth:`gsavatar.models.predictor.AppearancePredictor.rollout`):
-
-- ``predictor``: previous latents of frame 0 = zeros, every frame predicted (the paper's
-  fallback without textures; ramps up over the first frames).
-- ``pose_init``: previous latents of frame 0 = the predictor's pose-conditioned
-  InitialLatentNet (beyond the paper: its future-work item), every frame predicted.
-- ``predictor_encoder_init``: frame 0 = the encoder's latents of its projected texture
-  (teacher-forced), prediction from frame 1 (the paper's table 1 "Ours").
-- ``reinit``: as above, and at every ``t % reinit_every == 0`` the previous latents are
-  replaced by the encoder's latents of frame t (paper: "re-init. 30").
-- ``encoder``: the encoder's latents every frame (upper bound; needs textures every frame).
-
-Models without appearance latents (MMLPs-dagger) render from pose alone in any mode.
+The mode (``DriveConfig.mode``) names a latent source of :data:`gsavatar.drive.sources.LATENT_SOURCES`
+(where each frame's appearance latents come from: encoder, predictor with zero / pose / encoder
+initialisation, re-initialisation every K frames); the driver builds it once and asks it for the latents
+of each frame. Models without appearance latents (MMLPs-dagger) render from pose alone in any mode.
 """
 
 from __future__ import annotations
@@ -42,14 +33,11 @@ from gsavatar.data_schema.dataset import read_dataset_json
 from gsavatar.data_schema.prepared import ProjectedTextures
 from gsavatar.data_schema.views import scaled_camera
 from gsavatar.drive.motion import DrivingMotion
+from gsavatar.drive.sources import DriveMode, LatentSource, PoseOnly, SourceContext, source_class
 from gsavatar.models.batch import FrameBatch
 from gsavatar.runs.config import model_config
 from gsavatar.runs.load import LoadedRun, load_run, predictor_from_checkpoint, run_predictor_path
 from gsavatar.runs.views import orbit_cameras, render_views
-
-DriveMode = Literal["predictor", "predictor_encoder_init", "reinit", "encoder", "pose_init"]
-ENCODER_MODES = ("predictor_encoder_init", "reinit", "encoder")
-PREDICTOR_MODES = ("predictor", "predictor_encoder_init", "reinit", "pose_init")
 
 
 @dataclass
@@ -57,9 +45,8 @@ class DriveConfig:
     """How to drive: where the appearance latents come from and which cameras render."""
 
     mode: DriveMode = "predictor"
-    """Latent source: ``predictor`` (zero init), ``predictor_encoder_init`` (frame 0 from the encoder), ``reinit``
-    (encoder every ``reinit_every`` frames), ``encoder`` (upper bound, textures every frame), ``pose_init``
-    (predictor started from its pose-conditioned initial latent)."""
+    """Where each frame's appearance latents come from: a latent source of
+    :data:`gsavatar.drive.sources.LATENT_SOURCES` (each described by its class; docs/drive.md)."""
     reinit_every: int = 30
     """K of mode ``reinit``: frames between encoder re-initialisations (paper: 30)."""
     cameras: Literal["capture", "orbit"] = "capture"
@@ -88,8 +75,7 @@ class DriveConfig:
     """``auto`` (CUDA if available), ``cpu`` or ``cuda[:i]``."""
 
     def __post_init__(self) -> None:
-        if self.mode not in ("predictor", "predictor_encoder_init", "reinit", "encoder", "pose_init"):
-            raise ValueError(f"mode must be one of predictor/predictor_encoder_init/reinit/encoder/pose_init, got {self.mode!r}")
+        source_class(self.mode)  # raises for an unregistered mode
         if self.reinit_every < 1:
             raise ValueError(f"reinit_every must be >= 1, got {self.reinit_every}")
         if self.cameras not in ("capture", "orbit"):
@@ -208,7 +194,8 @@ class Driver:
         config: :class:`DriveConfig`.
         loaded: the run as :func:`gsavatar.runs.load_run` returns it, to skip reloading.
         predictor: the appearance predictor (``init_state``/``step``/``initial_latents``); ``"auto"``
-            loads the run's; None: none (only the ``encoder`` mode, or models without latents).
+            loads the run's when the mode's source needs one; None: none (only modes without a
+            predictor, or models without latents).
         camera_capture: capture whose calibrated cameras render (default: the run's capture).
     """
 
@@ -216,7 +203,8 @@ class Driver:
                  predictor="auto", camera_capture: Capture | None = None) -> None:
         self.config = cfg = config if config is not None else DriveConfig()
         self.run = Path(run)
-        net, scene, tcfg, _ = loaded if loaded is not None else load_run(self.run, cfg.device)
+        self.loaded = loaded if loaded is not None else load_run(self.run, cfg.device)
+        net, scene, tcfg, _ = self.loaded
         self.net, self.scene, self.train_cfg = net.eval(), scene, tcfg
         self.device = next(net.parameters()).device
         self.sh_degree = model_config(tcfg).sh_degree
@@ -225,48 +213,51 @@ class Driver:
         self.num_anchors, self.pose_dim, self.face_dim = av.num_anchors, av.pose_dim, av.config.face_dim
         self.latent_dim = av.latent_in
         self.has_latents = self.latent_dim > 0
-        if self.has_latents and cfg.mode in ENCODER_MODES and net.encoder is None:
+        kind = source_class(cfg.mode) if self.has_latents else PoseOnly
+        if kind.needs_texture and net.encoder is None:
             raise ValueError(f"mode {cfg.mode!r} needs the run's appearance encoder; this run has none")
         if isinstance(predictor, str):
             if predictor != "auto":
                 raise ValueError(f"predictor must be a predictor object, None or 'auto', got {predictor!r}")
-            predictor = load_predictor_for(self.run) if self.has_latents and cfg.mode in PREDICTOR_MODES else None
+            predictor = load_predictor_for(self.run) if kind.needs_predictor else None
         if predictor is not None and hasattr(predictor, "to"):
             predictor = predictor.to(self.device).eval()
         self.predictor = predictor
-        if self.has_latents and cfg.mode in PREDICTOR_MODES:
-            if predictor is None:
-                raise ValueError(f"mode {cfg.mode!r} needs a trained appearance predictor in {self.run / 'predictor'}; "
-                                 "train one first or use mode 'encoder' (needs textures)")
-            if cfg.mode == "pose_init" and (not hasattr(predictor, "initial_latents")
-                                            or not bool(getattr(predictor, "initial_ready", True))):
-                raise ValueError("mode 'pose_init' needs a predictor with a trained InitialLatentNet")
+        if kind.needs_predictor and predictor is None:
+            raise ValueError(f"mode {cfg.mode!r} needs a trained appearance predictor in {self.run / 'predictor'}; "
+                             "train one first or use mode 'encoder' (needs textures)")
+        self.source: LatentSource = kind(SourceContext(cfg, self.encode, predictor, self.num_anchors,
+                                                       self.latent_dim, self.device))
+        """The latent source of ``config.mode`` (:class:`~gsavatar.drive.sources.PoseOnly` without latents)."""
         self.fps = float(getattr(predictor, "fps", 0.0) or scene.capture.fps)
         """Frame rate the predictor was trained at (driving motions are resampled to it)."""
+        self.camera_capture = camera_capture or scene.capture
         self.views: list[View] = []
         if cfg.cameras == "capture":
-            self.views = capture_views(camera_capture or scene.capture, cfg.capture_cameras, cfg.image_scale)
+            self.views = capture_views(self.camera_capture, cfg.capture_cameras, cfg.image_scale)
         self.bg = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         self.t = -1
-        self.state = None
-        self._first_given = False
 
     def use_capture_cameras(self, capture: Capture) -> None:
         """Render ``capture``'s calibrated cameras (``config.capture_cameras``, default its test cameras)."""
+        self.camera_capture = capture
         if self.config.cameras == "capture":
             self.views = capture_views(capture, self.config.capture_cameras, self.config.image_scale)
+
+    def with_mode(self, mode: DriveMode) -> Driver:
+        """A driver of another mode sharing this one's run, predictor and cameras (fresh state)."""
+        return Driver(self.run, dataclasses.replace(self.config, mode=mode), loaded=self.loaded,
+                      predictor=self.predictor, camera_capture=self.camera_capture)
 
     # ------------------------------------------------------------------ latents
     @property
     def needs_textures(self) -> bool:
-        return self.has_latents and self.config.mode in ENCODER_MODES
+        """Whether the mode reads projected textures (``FrameInputs.texture``) on some frames."""
+        return self.source.needs_texture
 
     def texture_needed_at(self, t: int) -> bool:
-        """Whether :meth:`step` of frame ``t`` reads ``FrameInputs.texture``."""
-        if not self.needs_textures:
-            return False
-        m = self.config.mode
-        return m == "encoder" or t == 0 or (m == "reinit" and t % self.config.reinit_every == 0)
+        """Whether :meth:`step` of frame ``t`` (and :meth:`start` for t = 0) reads ``FrameInputs.texture``."""
+        return self.source.texture_needed_at(t)
 
     @torch.no_grad()
     def encode(self, texture: Tensor | None) -> Tensor:
@@ -277,7 +268,9 @@ class Driver:
             raise ValueError(f"texture must be [3, S, S], got {list(texture.shape)}")
         return self.net.latents(texture[None].to(self.device, torch.float32), None)[0][0]
 
-    def _check(self, x: FrameInputs) -> FrameInputs:
+    def check_inputs(self, x: FrameInputs) -> FrameInputs:
+        """Validated inputs as float32 on the driver's device (a missing face is zeros when the model has one),
+        as :meth:`render` takes them; raises ValueError naming the field."""
         if not isinstance(x, FrameInputs):
             raise ValueError(f"inputs must be FrameInputs, got {type(x).__name__}")
         dev = self.device
@@ -299,48 +292,21 @@ class Driver:
     @torch.no_grad()
     def start(self, first: FrameInputs) -> None:
         """Initialise a new sequence from frame 0's inputs (the next :meth:`step` must be frame 0)."""
-        x = self._check(first)
-        m = self.config.mode
-        self.t, self.state, self._first_given, self._init_latents = 0, None, False, None
+        x = self.check_inputs(first)
+        self.t = 0
         if self.config.cameras == "orbit":
-            out = self.net(x.batch(self._zeros() if self.has_latents else None), sh_degree=self.sh_degree)
+            lat = torch.zeros(self.num_anchors, self.latent_dim, device=self.device) if self.has_latents else None
+            out = self.net(x.batch(lat), sh_degree=self.sh_degree)
             center = out.avatar.means[0].mean(0).cpu().double().numpy()
             s = self.config.orbit_size
             vms, Ks = orbit_cameras(center, self.config.orbit_radius, self.config.orbit_height, self.config.orbit_views, s, s)
             self.views = [View(f"orbit{i:02d}", vms[i], Ks[i], s, s) for i in range(len(vms))]
-        if not self.has_latents or m == "encoder":
-            return
-        if m == "predictor":
-            init = self._zeros()
-        elif m == "pose_init":
-            init = self.predictor.initial_latents(x.pose[None])[0]
-        else:  # encoder-initialised: frame 0 is the encoder's (teacher-forced first frame)
-            init = self.encode(x.texture)
-            self._first_given = True
-        self._init_latents = init
-        self.state = self.predictor.init_state(x.pose, x.root_rotation, x.root_translation, init)
-
-    def _zeros(self) -> Tensor:
-        return torch.zeros(self.num_anchors, self.latent_dim, device=self.device)
-
-    @torch.no_grad()
-    def next_latents(self, x: FrameInputs) -> Tensor:
-        """Latents of the next frame (advances the state). x: checked FrameInputs -> [A, L]."""
-        t, m = self.t, self.config.mode
-        if not self.has_latents:
-            return torch.zeros(self.num_anchors, 0, device=self.device)
-        if m == "encoder":
-            return self.encode(x.texture)
-        if t == 0 and self._first_given:
-            return self._init_latents
-        if m == "reinit" and t > 0 and t % self.config.reinit_every == 0:
-            self.state = self.state._replace(latents=self.encode(x.texture).to(self.state.latents))
-        lat, self.state = self.predictor.step(self.state, x.pose, x.root_rotation, x.root_translation)
-        return lat
+        self.source.init(x)
 
     @torch.no_grad()
     def render(self, x: FrameInputs, latents: Tensor) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
-        """Render checked inputs with latents [A, L] from every view -> ({cam: [H,W,3]}, {cam: [H,W]}) on cpu."""
+        """Render inputs checked by :meth:`check_inputs` with latents [A, L] from every view
+        -> ({cam: [H,W,3]}, {cam: [H,W]}) on cpu."""
         out = self.net(x.batch(latents.to(self.device) if self.has_latents else None), sh_degree=self.sh_degree)
         images, alphas = {}, {}
         for v in self.views:
@@ -356,8 +322,8 @@ class Driver:
         ``render=False``: latents only (empty image dicts)."""
         if self.t < 0:
             raise ValueError("call start(first_frame_inputs) before step()")
-        x = self._check(inputs)
-        lat = self.next_latents(x)
+        x = self.check_inputs(inputs)
+        lat = self.source.next(x, self.t)
         images, alphas = self.render(x, lat) if render else ({}, {})
         frame = DriveFrame(lat.detach().float().cpu(), images, alphas, self.t)
         self.t += 1
@@ -374,22 +340,11 @@ class Driver:
         if motion.pose.shape[1] != self.pose_dim:
             raise ValueError(f"motion.pose must be [T, {self.pose_dim}], got {list(motion.pose.shape)}")
         get = lambda t: motion_inputs(motion, t, textures(t) if self.texture_needed_at(t) else None)  # noqa: E731
-        self.start(get(0))
+        first = get(0)
+        self.start(first)
         for t in range(motion.num_frames):
-            yield self.step(get(t))
+            yield self.step(first if t == 0 else get(t))
 
     def drive(self, motion: DrivingMotion, textures: Callable[[int], Tensor] | None = None) -> list[DriveFrame]:
         """All frames of ``motion`` (see :meth:`frames`)."""
         return list(self.frames(motion, textures))
-
-    def with_mode(self, mode: DriveMode) -> Driver:
-        """A driver sharing this one's net, scene and predictor with another mode (fresh state)."""
-        cfg = dataclasses.replace(self.config, mode=mode)
-        d = Driver.__new__(Driver)
-        d.__dict__.update(self.__dict__)
-        d.config, d.t, d.state, d._first_given = cfg, -1, None, False
-        if self.has_latents and mode in PREDICTOR_MODES and self.predictor is None:
-            raise ValueError(f"mode {mode!r} needs a trained appearance predictor")
-        if self.has_latents and mode in ENCODER_MODES and self.net.encoder is None:
-            raise ValueError(f"mode {mode!r} needs the run's appearance encoder")
-        return d

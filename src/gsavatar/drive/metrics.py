@@ -26,6 +26,8 @@ import torch
 from torch import Tensor
 
 from gsavatar.data_schema.views import UndistortMaps, load_view, scaled_camera
+from gsavatar.drive.driver import motion_inputs
+from gsavatar.drive.sources import ramp_up_modes, source_class
 from gsavatar.utils.io import atomic_write_json, write_image
 
 _COLORS = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75)]  # RGB
@@ -222,18 +224,16 @@ class SequenceMetrics:
 
 
 # --------------------------------------------------------------------------- ramp-up
-def measure_ramp_up(driver, motion, textures, frames: int = 30,
-                    modes: tuple[str, ...] = ("predictor", "pose_init", "predictor_encoder_init", "encoder"),
+def measure_ramp_up(driver, motion, textures, frames: int = 30, modes: tuple[str, ...] | None = None,
                     with_images: bool = True) -> dict:
     """Per-frame latent L1 error (vs the encoder's latents of the same frame) and PSNR (vs GT,
     mean over the driver's cameras) for the first ``frames`` frames after each initialisation.
 
     driver: a :class:`~gsavatar.drive.driver.Driver` with capture cameras; motion with ground
-    truth; textures(t) -> [3,S,S]. Modes the run cannot do are reported under ``skipped``.
+    truth; textures(t) -> [3,S,S]; modes: drive modes to compare (None: those of
+    :func:`~gsavatar.drive.sources.ramp_up_modes`). Modes the run cannot do are reported under ``skipped``.
     -> {"frames": n, "modes": {mode: {"latent_l1": [n], "psnr": [n] | None}}, "skipped": {mode: reason}}
     """
-    from gsavatar.drive.driver import motion_inputs
-
     if motion.gt is None:
         raise ValueError("ramp-up needs a motion with ground truth (a capture directory)")
     if not driver.has_latents:
@@ -248,11 +248,9 @@ def measure_ramp_up(driver, motion, textures, frames: int = 30,
     gts = [load_ground_truth(motion.gt.capture, motion.gt.frames[t], cams, driver.config.image_scale, driver.bg, maps)
            for t in range(n)] if with_images and driver.config.cameras == "capture" else None
     result: dict = {"frames": n, "fps": motion.fps, "cameras": cams, "modes": {}, "skipped": {}}
-    for mode in modes:
+    for mode in ramp_up_modes() if modes is None else modes:
         try:
             d = driver.with_mode(mode)
-            if mode == "pose_init" and not bool(getattr(d.predictor, "initial_ready", True)):
-                raise ValueError("the predictor's InitialLatentNet is not trained")
         except ValueError as e:
             result["skipped"][mode] = str(e)
             continue
@@ -274,7 +272,7 @@ def write_ramp_up(result: dict, out_dir: str | Path, stem: str = "ramp_up") -> t
     out_dir = Path(out_dir)
     atomic_write_json(out_dir / f"{stem}.json", result)
     modes = result["modes"]
-    panels = [line_plot({m: v["latent_l1"] for m, v in modes.items() if m != "encoder"},
+    panels = [line_plot({m: v["latent_l1"] for m, v in modes.items() if not source_class(m).matches_encoder},
                         "latent L1 vs encoder latents", "frame", "L1")]
     if any(v.get("psnr") for v in modes.values()):
         panels.append(line_plot({m: v["psnr"] for m, v in modes.items() if v.get("psnr")}, "PSNR vs ground truth",
