@@ -18,7 +18,7 @@ PY=${PYTHON:-python3}
 # torch first, pinned: any later unpinned request would otherwise pull a multi-GB CUDA build.
 .venv/bin/python -c "import torch, sys; sys.exit(0 if torch.__version__.startswith('2.13.0') else 1)" 2>/dev/null \
   || .venv/bin/pip install -q torch==2.13.0
-.venv/bin/pip install -q -e '.[body,test]'
+.venv/bin/pip install -q -e '.[body,smplx,test]'
 # anny's declared dependencies pull warp-lang and other torch builds; its runtime needs
 # are in the [body] extra above.
 .venv/bin/python -c "import anny" 2>/dev/null || .venv/bin/pip install -q --no-deps anny==0.6.2

@@ -14,6 +14,10 @@ import numpy as np
 
 from gsavatar.utils.errors import SchemaError
 
+SKIN_TOP_K = 4
+"""Skinning slots per vertex K in ``skin_weights.npz`` as gsavatar's own templates write it (synthetic bodies,
+imported SMPL-X bodies); readers accept any K."""
+
 
 @dataclass
 class Template:
@@ -38,6 +42,25 @@ class Template:
         if self.uvs is None or self.face_uvs is None:
             return None
         return self.uvs[self.face_uvs]
+
+
+def topk_skin_weights(w_dense: np.ndarray, k: int = SKIN_TOP_K) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` largest skinning weights per vertex, renormalised to sum to 1; unused slots (a vertex with fewer
+    than ``k`` non-zero weights) point at the vertex's main joint with weight 0.
+
+    w_dense: [V, J] non-negative (negatives are clipped) -> (indices [V, k] int32, weights [V, k] float32).
+    Raises RuntimeError when a vertex has no positive weight.
+    """
+    w_dense = np.clip(np.asarray(w_dense, dtype=np.float64), 0.0, None)
+    k = min(k, w_dense.shape[1])
+    idx = np.argsort(-w_dense, axis=1, kind="stable")[:, :k]
+    w = np.take_along_axis(w_dense, idx, axis=1)
+    s = w.sum(1, keepdims=True)
+    if np.any(s <= 0):
+        raise RuntimeError(f"{int(np.sum(s <= 0))} vertices have no skinning weight")
+    w = w / s
+    idx = np.where(w > 0, idx, idx[:, :1])  # unused slots point at the main joint (weight 0)
+    return idx.astype(np.int32), w.astype(np.float32)
 
 
 def validate_template(t: Template, num_joints: int, where: Path) -> None:

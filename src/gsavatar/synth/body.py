@@ -29,10 +29,11 @@ from pathlib import Path
 import numpy as np
 
 from gsavatar.data_schema.rig import BODY_GROUPS, Joint, PoseParam, Rig, rig_from_json
-from gsavatar.data_schema.template import Template
+from gsavatar.data_schema.template import SKIN_TOP_K, Template
+from gsavatar.data_schema.template import topk_skin_weights as topk_weights  # moved down: importers use it too
 
 _CACHE_VERSION = 1
-K_SKIN = 4
+K_SKIN = SKIN_TOP_K
 FACE_MASK_RES = 256
 
 EULER_AXES: tuple[tuple[str, tuple[float, float, float]], ...] = (
@@ -292,20 +293,6 @@ def _build_full(cache_dir: Path, seed: int) -> tuple[Template, Rig]:
         face_uv_mask=mask,
     )
     return tmpl, make_rig(names, parents, heads)
-
-
-def topk_weights(w_dense: np.ndarray, k: int = K_SKIN) -> tuple[np.ndarray, np.ndarray]:
-    """Top-k skinning weights per vertex, renormalised. [V, J] -> ([V, k] int32, [V, k] float32)."""
-    w_dense = np.clip(np.asarray(w_dense, dtype=np.float64), 0.0, None)
-    k = min(k, w_dense.shape[1])
-    idx = np.argsort(-w_dense, axis=1, kind="stable")[:, :k]
-    w = np.take_along_axis(w_dense, idx, axis=1)
-    s = w.sum(1, keepdims=True)
-    if np.any(s <= 0):
-        raise RuntimeError(f"{int(np.sum(s <= 0))} vertices have no skinning weight")
-    w = w / s
-    idx = np.where(w > 0, idx, idx[:, :1])  # unused slots point at the main joint (weight 0)
-    return idx.astype(np.int32), w.astype(np.float32)
 
 
 # --------------------------------------------------------------------------------------
