@@ -266,3 +266,26 @@ def test_clear_error_without_any_weights(monkeypatch):
         LPIPS("alex")
     with pytest.raises(ValueError, match="vanilla"):
         LPIPS("alex", variant="vanilla")
+
+
+# ------------------------------------------------------------------ a command's --lpips
+
+
+def test_load_lpips_modes(tmp_path):
+    """The one helper behind ``--lpips auto|on|off`` (training loss, run evaluation, avatar-drive)."""
+    missing = tmp_path / "missing.pth"
+    assert lp.load_lpips("off", "cpu", missing) == (None, "off")  # nothing is loaded
+    assert lp.load_lpips("auto", "cpu", missing, auto_on=False) == (None, "off")  # training on CPU
+    assert lp.load_lpips("auto", "cpu", missing, fallback=True) == (None, "off (unavailable: LPIPSWeightsError)")
+    for mode in ("on", "auto"):  # refused, naming the option and why (exit 2 in a CLI)
+        with pytest.raises(ValueError, match=f"lpips={mode} but the LPIPS network cannot be loaded: .*not found"):
+            lp.load_lpips(mode, "cpu", missing, fallback=mode == "on")  # fallback is for auto only
+    with pytest.raises(ValueError, match="'auto', 'on' or 'off'"):
+        lp.load_lpips("yes", "cpu")  # type: ignore[arg-type]
+
+
+@needs_st
+def test_load_lpips_builds_the_network():
+    got = lp.load_lpips("on", "cpu")
+    assert isinstance(got.net, LPIPS) and got.name == got.net.lpips_name == LPIPS().lpips_name
+    assert lp.load_lpips("auto", "cpu", auto_on=True).name == got.name

@@ -18,7 +18,6 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 import torch
@@ -26,6 +25,7 @@ import tyro
 
 from gsavatar.data_schema.views import UndistortMaps
 from gsavatar.drive.driver import DriveConfig, Driver, load_predictor_for, texture_source
+from gsavatar.metrics.lpips import LPIPSMode, load_lpips
 from gsavatar.utils.cli import run_reporting_errors
 from gsavatar.utils.io import atomic_path, atomic_save_npz, atomic_write_json, write_image
 from gsavatar.utils.outdir import claim_output_dir
@@ -52,7 +52,7 @@ class DriveArgs(DriveConfig):
     """Source frames to use (BVH: output frames); 0 = to the end."""
     write_frames: bool = True
     """Write every render as frames/{cam}/{t:06d}.png."""
-    lpips: Literal["auto", "on", "off"] = "auto"
+    lpips: LPIPSMode = "auto"
     """LPIPS metric: ``auto`` uses it when its weights load, ``on`` requires it, ``off`` skips it."""
     ramp_up: int = 0
     """Also measure the first N frames after zero / pose / encoder initialisation (needs ground truth + textures)."""
@@ -62,20 +62,6 @@ class DriveArgs(DriveConfig):
 
     def config(self) -> DriveConfig:
         return DriveConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(DriveConfig)})
-
-
-def _lpips(mode: str, device: torch.device):
-    if mode == "off":
-        return None, "off"
-    try:
-        from gsavatar.metrics.lpips import LPIPS
-
-        m = LPIPS().to(device)
-        return m, m.lpips_name
-    except Exception as e:  # noqa: BLE001 - missing weights wheel etc.
-        if mode == "on":
-            raise ValueError(f"lpips=on but the LPIPS network cannot be loaded: {e}") from None
-        return None, f"off (unavailable: {type(e).__name__})"
 
 
 def _json_safe(obj):
@@ -131,7 +117,7 @@ def drive(args: DriveArgs) -> dict:
 
         check_images(gt.capture, sorted(set(gt.frames)), [v.name for v in d.views])
     textures = texture_source(motion, scene, cfg.textures) if d.needs_textures else None
-    lp, lp_name = _lpips(args.lpips, d.device) if gt is not None else (None, "off")
+    lp, lp_name = load_lpips(args.lpips, d.device, fallback=True) if gt is not None else (None, "off")
     acc = SequenceMetrics(lp)
     maps = UndistortMaps()  # undistortion tables of the ground-truth cameras, built once for the sequence
     out = claim_output_dir(Path(args.out), "drive", args.force, register=True)

@@ -55,7 +55,7 @@ import importlib.util
 import re
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import torch
 import torch.nn as nn
@@ -569,13 +569,54 @@ class LPIPS(nn.Module):
         return f"lpips_name={self.lpips_name!r}"
 
 
+# ----------------------------------------------------------------------- a command's --lpips
+
+LPIPSMode = Literal["auto", "on", "off"]
+"""A command's ``--lpips``: ``on`` requires the network, ``off`` skips it, ``auto`` is up to the command
+(:func:`load_lpips`)."""
+
+
+class LoadedLPIPS(NamedTuple):
+    net: LPIPS | None
+    """The network on the requested device; None when off or unavailable."""
+    name: str
+    """What to report next to the scores: ``net.lpips_name``, ``off`` or ``off (unavailable: <error type>)``."""
+
+
+def load_lpips(mode: LPIPSMode, device: torch.device | str, weights: str | Path | None = None, *,
+               auto_on: bool = True, fallback: bool = False) -> LoadedLPIPS:
+    """The LPIPS network a command's ``--lpips mode`` asks for: the one place the commands build it.
+
+    ``off``: none. ``on``: ``LPIPS(weights=weights)`` on ``device``; ValueError naming the option when it
+    cannot be loaded (no ``stlpips-pytorch`` wheel, a missing or unfitting ``weights`` file). ``auto``: as
+    ``on`` if ``auto_on`` (the command's condition), else none; with ``fallback`` a network that cannot be
+    loaded is skipped (named ``off (unavailable: ...)``) instead of refused. The commands: the training loss
+    passes ``auto_on`` = training on CUDA (on CPU it costs more than the rest of a step); a run's
+    evaluation uses it unless ``off``; ``avatar-drive`` passes ``fallback=True`` (its metric is optional).
+    """
+    if mode not in ("auto", "on", "off"):
+        raise ValueError(f"lpips must be 'auto', 'on' or 'off', got {mode!r}")
+    if mode == "off" or (mode == "auto" and not auto_on):
+        return LoadedLPIPS(None, "off")
+    try:
+        net = LPIPS(weights=weights).to(device)
+    except Exception as e:  # noqa: BLE001 - missing weights wheel, unreadable or unfitting file
+        if mode == "auto" and fallback:
+            return LoadedLPIPS(None, f"off (unavailable: {type(e).__name__})")
+        raise ValueError(f"lpips={mode} but the LPIPS network cannot be loaded: {e}") from None
+    return LoadedLPIPS(net, net.lpips_name)
+
+
 __all__ = [
     "LPIPS",
     "BlurPool2d",
     "FeatureTrunk",
+    "LPIPSMode",
     "LPIPSWeightsError",
+    "LoadedLPIPS",
     "convert_official_lpips",
     "infer_variant",
+    "load_lpips",
     "layer_distance",
     "official_lpips_state_dict",
     "scale_inputs",

@@ -1,26 +1,28 @@
-"""Stage implementations behind the ``avatar-prep`` subcommands (thin glue over the math modules)."""
+"""Stage run functions behind the ``avatar-prep`` subcommands (thin glue over the math modules).
+
+Each takes ``(args, capture, config, inputs)``: the command's common arguments, the loaded capture, the
+stage's config (:mod:`gsavatar.prep.configs`; ``0 = derived`` fields resolved here) and the fingerprint
+of what it reads (built from the stage table, :mod:`gsavatar.prep.table`). None calls another stage: the
+table says which stages run first, and :func:`gsavatar.prep.table.run_stages` runs them.
+"""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from pathlib import Path
 
 import numpy as np
 
-from gsavatar.data_schema import load_capture
-from gsavatar.data_schema.dataset import read_dataset_json, stage_complete
-from gsavatar.prep.common import StageArgs, open_capture, run_frame_stage, run_single_file_stage
-from gsavatar.prep.inputs import frame_inputs, metadata_inputs, upstream_inputs
-from gsavatar.utils.io import read_npz
+from gsavatar.data_schema import Capture, SchemaError, load_capture
+from gsavatar.data_schema.dataset import ShardReader, stage_dir, stage_path
+from gsavatar.data_schema.hierarchy import Hierarchy
+from gsavatar.prep.common import StageArgs, run_frame_stage, run_single_file_stage, stage_config
+from gsavatar.prep.configs import (FitPcaConfig, LocalizeConfig, PoseTemplateConfig, ProjectConfig, ProjectUvConfig,
+                                   SamplePointsConfig, UvAtlasConfig)
+from gsavatar.prep.inputs import frame_inputs
+from gsavatar.utils.io import atomic_save_npz, read_npz
 from gsavatar.utils.paths import output_path
-
-# Capture files each stage reads (fingerprinted; a change re-runs the stage). ``template/`` = every file in it.
-POSE_TEMPLATE_INPUTS = ("capture.json", "motion.npz", "template/")
-UV_ATLAS_INPUTS = ("template/",)
-PROJECT_UV_INPUTS = ("capture.json", "calibration.json", "splits.json", "template/")  # + images, masks, upstream
-FIT_PCA_INPUTS = ("motion.npz", "splits.json", "template/rig.json")
-SAMPLE_POINTS_INPUTS = ("template/",)  # automatic counts come from calibration.json but are resolved into the config
-LOCALIZE_INPUTS = ("template/",)  # + sample-points
 
 
 # --------------------------------------------------------------------------- pose-template
@@ -30,26 +32,22 @@ def _pose_shard(capture_dir: str, frames: list[int]) -> dict[str, np.ndarray]:
     return {"vertices": pose_vertices(load_capture(capture_dir, check_files=False), frames)}
 
 
-def pose_template(args: StageArgs) -> bool:
-    cap = open_capture(args)
+def pose_template(args: StageArgs, cap: Capture, cfg: PoseTemplateConfig, inputs: dict[str, str]) -> bool:
     frames = list(range(cap.num_frames))
     return run_frame_stage("pose-template", args, {"num_vertices": int(len(cap.template.vertices))}, frames,
-                           functools.partial(_pose_shard, str(args.capture)),
-                           metadata_inputs(cap.root, POSE_TEMPLATE_INPUTS))
+                           functools.partial(_pose_shard, str(args.capture)), inputs)
 
 
 # --------------------------------------------------------------------------- uv-atlas
-def auto_tex_size(cap) -> int:
+def auto_tex_size(cap: Capture) -> int:
     """Texture a capture's images can fill: a power of two about twice the largest image side
     (a texel per half pixel), clamped to [256, 1024] (1024 = the paper's size)."""
     side = max(max(c.width, c.height) for c in cap.cameras.values())
     return int(np.clip(2 ** int(np.ceil(np.log2(2 * side))), 256, 1024))
 
 
-def resolve_tex_size(cfg, cap):
-    """``cfg`` (a ProjectConfig) with ``tex_size`` 0 replaced by :func:`auto_tex_size`."""
-    import dataclasses
-
+def resolve_tex_size(cfg: ProjectConfig, cap: Capture) -> ProjectConfig:
+    """``cfg`` with ``tex_size`` 0 replaced by :func:`auto_tex_size`."""
     if cfg.tex_size:
         return cfg
     size = auto_tex_size(cap)
@@ -61,16 +59,20 @@ def atlas_config(tex_size: int, gutter_px: float) -> dict:
     return {"tex_size": int(tex_size), "gutter_px": float(gutter_px)}
 
 
-def uv_atlas(args: StageArgs, tex_size: int, gutter_px: float = 1.0) -> bool:
-    from gsavatar.prep.uv_atlas import build_texel_map, ensure_uvs
-    from gsavatar.utils.io import atomic_save_npz
+def atlas_for_projection(cfg: ProjectUvConfig) -> UvAtlasConfig:
+    """The atlas project-uv reads: its texture size (0 = derived the same way) and seam gutter."""
+    return UvAtlasConfig(tex_size=cfg.project.tex_size, gutter_px=cfg.project.gutter_px)
 
-    cap = open_capture(args)
+
+def uv_atlas(args: StageArgs, cap: Capture, cfg: UvAtlasConfig, inputs: dict[str, str]) -> bool:
+    from gsavatar.prep.uv_atlas import build_texel_map, ensure_uvs
+
     root = Path(args.out)
+    tex_size = cfg.tex_size or auto_tex_size(cap)
 
     def produce() -> list[Path]:
         t = ensure_uvs(cap.template, cache_dir=root / "uv_atlas" / "xatlas_cache")
-        tm = build_texel_map(t, size=tex_size, gutter=gutter_px)
+        tm = build_texel_map(t, size=tex_size, gutter=cfg.gutter_px)
         path = root / "uv_atlas" / "atlas.npz"
         # face_uv_mask belongs to the template's own UV layout; after an xatlas unwrap there is none.
         face_mask = t.face_uv_mask if t.face_uv_mask is not None else np.zeros((1, 1), bool)
@@ -80,13 +82,11 @@ def uv_atlas(args: StageArgs, tex_size: int, gutter_px: float = 1.0) -> bool:
               f"({'template UVs' if cap.template.uvs is not None else 'xatlas unwrap'})")
         return [path]
 
-    return run_single_file_stage("uv-atlas", args, atlas_config(tex_size, gutter_px), produce,
-                                 metadata_inputs(cap.root, UV_ATLAS_INPUTS))
+    return run_single_file_stage("uv-atlas", args, atlas_config(tex_size, cfg.gutter_px), produce, inputs)
 
 
 def load_atlas(root: Path):
     """The texel map and UVs written by ``uv-atlas``."""
-    from gsavatar.data_schema.dataset import stage_path
     from gsavatar.prep.uv_atlas import TexelMap
 
     z = read_npz(stage_path(Path(root), "uv-atlas", "atlas.npz"), keys=("face", "bary", "size", "interior", "uvs", "face_uvs"))
@@ -95,16 +95,13 @@ def load_atlas(root: Path):
 
 def load_atlas_face_mask(root: Path) -> np.ndarray | None:
     """Face region in the atlas' UV layout (None after an xatlas unwrap or without a mask).  # [h, w] bool"""
-    from gsavatar.data_schema.dataset import stage_path
-
     m = read_npz(stage_path(Path(root), "uv-atlas", "atlas.npz"), keys=("face_uv_mask",))["face_uv_mask"]
     return m if m.any() else None
 
 
 # --------------------------------------------------------------------------- project-uv
 def _project_shard(capture_dir: str, dataset: str, cfg_json: dict, cams: list[str], frames: list[int]) -> dict[str, np.ndarray]:
-    from gsavatar.data_schema.dataset import ShardReader, stage_dir
-    from gsavatar.prep.project_uv import ProjectConfig, UVProjector, iter_frame_views
+    from gsavatar.prep.project_uv import UVProjector, iter_frame_views
 
     cap = load_capture(capture_dir)
     tm, _, _ = load_atlas(Path(dataset))
@@ -120,11 +117,15 @@ def _project_shard(capture_dir: str, dataset: str, cfg_json: dict, cams: list[st
     return {"texture": np.stack(tex), "count": np.stack(cnt), "seen": np.stack(seen)}
 
 
-def check_cameras_see_body(cap, cams: list[str], max_frames: int = 8) -> None:
+def projected_cameras(cap: Capture, cameras: str) -> list[str]:
+    """``cameras``: ``train`` (held-out views never leak into textures) or ``all``."""
+    return sorted(cap.splits["train"].cameras) if cameras == "train" else sorted(cap.cameras)
+
+
+def check_cameras_see_body(cap: Capture, cams: list[str], max_frames: int = 8) -> None:
     """Refuse a calibration under which none of ``cams`` sees the posed body in any of up to
     ``max_frames`` evenly spaced frames (every camera behind or pointed away from it, e.g. R, T given
     camera-to-world): the textures would be empty. Single blind cameras are allowed (a warning)."""
-    from gsavatar.data_schema import SchemaError
     from gsavatar.prep.pose_template import pose_vertices
     from gsavatar.prep.project_uv import cameras_seeing
 
@@ -140,42 +141,37 @@ def check_cameras_see_body(cap, cams: list[str], max_frames: int = 8) -> None:
         print(f"[project-uv] warning: cameras {blind} see no part of the body in frames {frames}")
 
 
-def project_uv(args: StageArgs, cfg, cameras: str = "train") -> bool:
-    """``cameras``: ``train`` (default: held-out views never leak into textures) or ``all``."""
-    from gsavatar.prep.common import stage_config
-
-    cap = open_capture(args)
-    cfg = resolve_tex_size(cfg, cap)
-    cams = sorted(cap.splits["train"].cameras) if cameras == "train" else sorted(cap.cameras)
-    check_cameras_see_body(cap, cams)
+def check_project_uv(cap: Capture, cfg: ProjectUvConfig) -> None:
+    """Refuse, before any stage runs, a capture whose projected views would give empty textures."""
     from gsavatar.prep.project_uv import check_mask_coverage
 
+    cams = projected_cameras(cap, cfg.cameras)
+    check_cameras_see_body(cap, cams)
     check_mask_coverage(cap, cams)
-    pose_template(args)
-    uv_atlas(args, cfg.tex_size, cfg.gutter_px)
-    config = {**stage_config(cfg), "cameras": cams}
-    cfg_json = stage_config(cfg)
-    inputs = {**metadata_inputs(cap.root, PROJECT_UV_INPUTS),
-              **upstream_inputs(Path(args.out), ("pose-template", "uv-atlas"))}
-    return run_frame_stage("project-uv", args, config, list(range(cap.num_frames)),
+
+
+def project_uv(args: StageArgs, cap: Capture, cfg: ProjectUvConfig, inputs: dict[str, str]) -> bool:
+    proj = resolve_tex_size(cfg.project, cap)
+    cams = projected_cameras(cap, cfg.cameras)
+    cfg_json = stage_config(proj)
+    return run_frame_stage("project-uv", args, {**cfg_json, "cameras": cams}, list(range(cap.num_frames)),
                            functools.partial(_project_shard, str(args.capture), str(args.out), cfg_json, cams),
                            inputs, functools.partial(frame_inputs, cap, cams=cams))
 
 
 # --------------------------------------------------------------------------- fit-pca
-def fit_pca(args: StageArgs, n_components: int = 5, global_components: int = 20, clamp_sigma: float = 2.0) -> bool:
+def fit_pca(args: StageArgs, cap: Capture, cfg: FitPcaConfig, inputs: dict[str, str]) -> bool:
     from gsavatar.prep.pca import fit_pose_pca
 
-    cap = open_capture(args)
     root = Path(args.out)
-    config = {"n_components": n_components, "global_components": global_components, "clamp_sigma": clamp_sigma,
-              "train_frames": len(cap.splits["train"].frames)}
+    config = {"n_components": cfg.n_components, "global_components": cfg.global_components,
+              "clamp_sigma": cfg.clamp_sigma, "train_frames": len(cap.splits["train"].frames)}
 
     def produce() -> list[Path]:
         poses = cap.motion.pose[cap.splits["train"].frames]
         out = []
-        for mode, k in (("local", n_components), ("global", global_components)):
-            p = fit_pose_pca(poses, cap.rig, n_components=k, mode=mode, clamp_sigma=clamp_sigma)
+        for mode, k in (("local", cfg.n_components), ("global", cfg.global_components)):
+            p = fit_pose_pca(poses, cap.rig, n_components=k, mode=mode, clamp_sigma=cfg.clamp_sigma)
             path = root / "fit_pca" / f"{mode}.npz"
             p.save(path)
             out.append(path)
@@ -183,11 +179,11 @@ def fit_pca(args: StageArgs, n_components: int = 5, global_components: int = 20,
                 print(f"[fit-pca] local components per group: {p.components_per_group()}")
         return out
 
-    return run_single_file_stage("fit-pca", args, config, produce, metadata_inputs(cap.root, FIT_PCA_INPUTS))
+    return run_single_file_stage("fit-pca", args, config, produce, inputs)
 
 
 # --------------------------------------------------------------------------- sample-points
-def auto_point_counts(cap) -> dict[str, int]:
+def auto_point_counts(cap: Capture) -> dict[str, int]:
     """Point counts a scene needs: Gaussians scale with the foreground pixels a view can resolve.
 
     About 2 Gaussians per foreground pixel of the largest view (a full-body view covers about
@@ -201,63 +197,50 @@ def auto_point_counts(cap) -> dict[str, int]:
     return {"anchors": n_a, "control": n_c, "gaussians": n_g}
 
 
-def sample_points(args: StageArgs, anchors: int = 0, control: int = 0, gaussians: int = 0, seed: int = 0) -> bool:
+def sample_points(args: StageArgs, cap: Capture, cfg: SamplePointsConfig, inputs: dict[str, str]) -> bool:
     from gsavatar.prep.sample_points import build_hierarchy
 
-    cap = open_capture(args)
     root = Path(args.out)
+    given = {"anchors": cfg.anchors, "control": cfg.control, "gaussians": cfg.gaussians}
     auto = auto_point_counts(cap)
-    counts = {"anchors": anchors or auto["anchors"], "control": control or auto["control"],
-              "gaussians": gaussians or auto["gaussians"]}
-    config = {**counts, "seed": seed}
+    counts = {k: v or auto[k] for k, v in given.items()}
 
     def produce() -> list[Path]:
-        chosen = ", ".join(f"{k} {v}" + (" (auto)" if not {"anchors": anchors, "control": control, "gaussians": gaussians}[k] else "")
-                           for k, v in counts.items())
-        print(f"[sample-points] {chosen}")
-        h = build_hierarchy(cap.template, counts["anchors"], counts["control"], counts["gaussians"], seed=seed)
+        print("[sample-points] " + ", ".join(f"{k} {v}" + ("" if given[k] else " (auto)") for k, v in counts.items()))
+        h = build_hierarchy(cap.template, counts["anchors"], counts["control"], counts["gaussians"], seed=cfg.seed)
         path = root / "sample_points" / "hierarchy.npz"
         h.save(path)
         return [path]
 
-    return run_single_file_stage("sample-points", args, config, produce,
-                                 metadata_inputs(cap.root, SAMPLE_POINTS_INPUTS))
+    return run_single_file_stage("sample-points", args, {**counts, "seed": cfg.seed}, produce, inputs)
 
 
 # --------------------------------------------------------------------------- localize
-def localize(args: StageArgs, ancestor_levels: int = 1, k_neighbors: int = 6, figure_param: str = "Neck.ry",
-             figures: bool = True) -> bool:
-    from gsavatar.data_schema.dataset import stage_path
-    from gsavatar.data_schema.hierarchy import Hierarchy
+def localize(args: StageArgs, cap: Capture, cfg: LocalizeConfig, inputs: dict[str, str]) -> bool:
     from gsavatar.prep.localize import build_localization
 
-    cap = open_capture(args)
     root = Path(args.out)
-    if not stage_complete(root, "sample-points", inputs=metadata_inputs(cap.root, SAMPLE_POINTS_INPUTS)):
-        # any recorded counts are fine: a stale record is recomputed with its own counts, a missing one with the defaults
-        rec = read_dataset_json(root)["stages"].get("sample-points") or {}
-        keep = {k: v for k, v in (rec.get("config") or {}).items() if k in ("anchors", "control", "gaussians", "seed")}
-        sample_points(args, **keep)
-    config = {"ancestor_levels": ancestor_levels, "k_neighbors": k_neighbors, "figure_param": figure_param, "figures": figures}
 
     def produce() -> list[Path]:
         h = Hierarchy.load(stage_path(root, "sample-points", "hierarchy.npz"))
-        masks = build_localization(h, cap.rig, cap.template.face_uv_mask, ancestor_levels=ancestor_levels,
-                                   k_neighbors=k_neighbors, template=cap.template)
+        masks = build_localization(h, cap.rig, cap.template.face_uv_mask, ancestor_levels=cfg.ancestor_levels,
+                                   k_neighbors=cfg.k_neighbors, template=cap.template)
         path = root / "localize" / "masks.npz"
         masks.save(path)
         files = [path]
         active = masks.pose.mean()
         print(f"[localize] {masks.pose.shape[0]} anchors x {masks.pose.shape[1]} pose slots, {active:.1%} active; "
               f"{int(masks.face.sum())} face anchors")
-        if figures:
+        if cfg.figures:
             from gsavatar.prep.figures import render_hierarchy_figure, render_influence_figure
 
-            param = figure_param if figure_param in [p.name for p in cap.rig.params] else cap.rig.params[0].name
+            names = [p.name for p in cap.rig.params]
+            param = cfg.figure_param if cfg.figure_param in names else names[0]
             files.append(Path(render_hierarchy_figure(cap.template, h, root / "localize" / "hierarchy.png")))
             files.append(Path(render_influence_figure(cap.template, h, masks, cap.rig,
                                                       output_path(root, "localize", f"influence_{param}.png"), param=param)))
         return files
 
-    inputs = {**metadata_inputs(cap.root, LOCALIZE_INPUTS), **upstream_inputs(root, ("sample-points",))}
+    config = {"ancestor_levels": cfg.ancestor_levels, "k_neighbors": cfg.k_neighbors, "figure_param": cfg.figure_param,
+              "figures": cfg.figures}
     return run_single_file_stage("localize", args, config, produce, inputs)

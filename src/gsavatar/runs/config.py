@@ -15,6 +15,7 @@ from typing import Literal
 
 import numpy as np
 
+from gsavatar.metrics.lpips import LPIPSMode
 from gsavatar.models.config import ModelConfig, PresetName, VariantName, model_preset, variant_config
 from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.jsonio import config_to_json, is_int, is_number
@@ -84,7 +85,7 @@ class TrainConfig:
     """Memory budget of the view cache; views past it are decoded every time."""
     losses: LossWeights = field(default_factory=LossWeights)
     """Loss weights (defaults: the paper's)."""
-    lpips: Literal["auto", "on", "off"] = "auto"
+    lpips: LPIPSMode = "auto"
     """Perceptual loss: ``auto`` = on when training on CUDA, off on CPU (ST-LPIPS AlexNet costs ~2 s per
     256^2 view forward+backward on 2 cores, more than the rest of a step). ``off`` also drops the metric."""
     lpips_weights: Path | None = None

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gsavatar.metrics.lpips import load_lpips
 from gsavatar.models.batch import FrameBatch
 from gsavatar.models.encoder import sample_at_uv
 from gsavatar.models.net import AvatarNet
@@ -20,14 +21,6 @@ from gsavatar.train.data import ViewDataset
 from gsavatar.train.evaluate import evaluate_views, select_frames
 from gsavatar.train.trainer import Trainer
 from gsavatar.utils.io import atomic_write_json
-
-
-def lpips_or_none(cfg: TrainConfig, device):
-    if cfg.lpips == "off":
-        return None
-    from gsavatar.metrics.lpips import LPIPS
-
-    return LPIPS(weights=cfg.lpips_weights).to(device)
 
 
 def train_and_evaluate(cfg: TrainConfig, evaluate: bool = True, force_out: bool = False) -> dict:
@@ -52,7 +45,7 @@ def evaluate_run(run: Path, eval_frames: int = 8, loaded: LoadedRun | None = Non
     run = Path(run)
     net, scene, cfg, _ = loaded if loaded is not None else load_run(run)
     dev = next(net.parameters()).device
-    lp = lpips_or_none(cfg, dev)
+    lp = load_lpips(cfg.lpips, dev, cfg.lpips_weights)  # evaluation: the metric unless --lpips off
     splits = scene.capture.splits
     sh = model_config(cfg).sh_degree
     results = {}
@@ -63,7 +56,7 @@ def evaluate_run(run: Path, eval_frames: int = 8, loaded: LoadedRun | None = Non
     for name, (frames, cams) in sets.items():
         data = ViewDataset(scene, "train", cameras=cams, frames=frames, image_scale=cfg.image_scale,
                            with_texture=net.encoder is not None, texture_source=cfg.texture_source)
-        results[name] = evaluate_views(net, data, dev, sh, cfg.backend, lpips=lp, save_dir=run / "eval" / name)
+        results[name] = evaluate_views(net, data, dev, sh, cfg.backend, lpips=lp.net, save_dir=run / "eval" / name)
     if net.encoder is not None and "test" in splits:
         # How much the appearance latent buys: the same held-out views with every frame's latents replaced by
         # the training frames' mean latent. ~0 dB means the avatar ignores its latents.
@@ -76,7 +69,7 @@ def evaluate_run(run: Path, eval_frames: int = 8, loaded: LoadedRun | None = Non
     fd = run_frame_dependence(net, scene, cfg.texture_source)
     if fd is not None:
         results["frame_dependence"] = fd
-    results["lpips_net"] = getattr(lp, "lpips_name", None) if lp is not None else "off"
+    results["lpips_net"] = lp.name
     results["variant"] = cfg.variant
     atomic_write_json(run / "eval" / "metrics.json", results)
     return results

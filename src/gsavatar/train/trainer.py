@@ -15,6 +15,7 @@ from torch.utils.data import DataLoader
 
 from gsavatar.data_schema.dataset import dataset_fingerprint
 from gsavatar.data_schema.prepared import load_scene
+from gsavatar.metrics.lpips import load_lpips
 from gsavatar.models.batch import FrameBatch
 from gsavatar.models.config import LearningRates
 from gsavatar.models.net import build_net
@@ -77,12 +78,9 @@ class Trainer:
         # step on one CPU thread); the same update up to rounding.
         self.optim = torch.optim.AdamW(groups, eps=1e-15, betas=(0.9, 0.999),
                                        fused=self.device.type in ("cpu", "cuda"))
-        self.lpips = None
-        use_lpips = self.cfg.lpips == "on" or (self.cfg.lpips == "auto" and self.device.type == "cuda")
-        if use_lpips and self.cfg.losses.lpips > 0:
-            from gsavatar.metrics.lpips import LPIPS
-
-            self.lpips = LPIPS(weights=self.cfg.lpips_weights).to(self.device)
+        # the loss: --lpips auto = on when training on CUDA (TrainConfig.lpips); none with a zero weight
+        self.lpips = load_lpips(self.cfg.lpips if self.cfg.losses.lpips > 0 else "off", self.device,
+                                self.cfg.lpips_weights, auto_on=self.device.type == "cuda").net
         self.data = ViewDataset(self.scene, "train", image_scale=self.cfg.image_scale, with_texture=self.mcfg.use_latent,
                                 texture_source=self.cfg.texture_source,
                                 cache_bytes=int(self.cfg.cache_max_gb * 2**30) if self.cfg.cache_views else 0)
