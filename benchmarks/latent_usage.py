@@ -30,6 +30,7 @@ def main() -> None:
     ap.add_argument("--no-center", action="store_true", help="coefficients MLP(x), not MLP(x) - MLP(x_ref)")
     ap.add_argument("--no-latent-norm", action="store_true", help="raw encoder latents")
     ap.add_argument("--paper-model", action="store_true", help="all three above (the paper's model)")
+    ap.add_argument("--anchor-sh0", action="store_true", help="also a per-anchor colour basis (ModelConfig.anchor_sh0)")
     ap.add_argument("--mlp-init", choices=("linear", "he"), default=None, help="anchor-MLP init (default: the recipe's)")
     ap.add_argument("--basis-lr-scale", type=float, default=0.0, help="0 = the preset's (10)")
     ap.add_argument("--vae-noise-step", type=int, default=-2, help="-2 = the preset's (never); else VAE noise + KL from")
@@ -44,6 +45,8 @@ def main() -> None:
     off = {"input_norm": a.no_input_norm or a.paper_model, "center_correctives": a.no_center or a.paper_model,
            "latent_norm": a.no_latent_norm or a.paper_model}
     mc.CPU_RECIPE = {k: (not off[k]) if k in off else v for k, v in mc.CPU_RECIPE.items()}  # read by model_preset
+    if a.anchor_sh0:
+        mc.CPU_RECIPE["anchor_sh0"] = True
     if a.mlp_init is not None:
         mc.CPU_RECIPE["mlp_init"] = a.mlp_init
     cfg = TrainConfig(dataset=a.dataset, out=a.out / a.name, preset="small", steps=a.steps,

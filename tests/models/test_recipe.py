@@ -180,3 +180,36 @@ def test_centred_correctives_vanish_at_the_mean_input(prep):
     assert plain.pose_head.coefficients(plain.anchor_inputs(mean_pose, None, lat)).abs().max() > 1e-3
     with pytest.raises(ValueError, match="input_norm"):
         make(prep, cfg.replace(input_norm=False)).set_input_stats(poses)
+
+
+def test_anchor_sh0_basis_against_a_dense_oracle(prep):
+    """``anchor_sh0``: zero anchor basis = the plain avatar; a non-zero one adds, per Gaussian, the anchor
+    deltas ``<w_a, ΔΛ^a>`` blended with the Gaussian's anchor weights (dense oracle), and gets gradients."""
+    rig, *_ = prep
+    cfg = model_preset("tiny")
+    pose = torch.randn(2, rig.pose_dim, generator=torch.Generator().manual_seed(3)) * 0.3
+    torch.manual_seed(0)
+    plain = make(prep, cfg, randomize=True)
+    torch.manual_seed(0)
+    av = make(prep, cfg.replace(anchor_sh0=True), randomize=True)
+    av.load_state_dict(plain.state_dict(), strict=False)
+    with torch.no_grad():
+        av.sh0_anchor_basis.zero_()  # randomize_bases filled it too
+    assert set(av.state_dict()) - set(plain.state_dict()) == {"sh0_anchor_basis"}
+    rr, rt = torch.zeros(2, 3), torch.zeros(2, 3)
+    lat = torch.randn(2, av.num_anchors, av.latent_in, generator=torch.Generator().manual_seed(4))
+    torch.testing.assert_close(av(pose, rr, rt, None, lat).sh, plain(pose, rr, rt, None, lat).sh, rtol=0, atol=0)
+    with torch.no_grad():
+        av.sh0_anchor_basis.normal_(0, 0.3, generator=torch.Generator().manual_seed(5))
+    out = av(pose, rr, rt, None, lat)
+    coeffs = av.pose_head.coefficients(av.anchor_inputs(pose, None, lat))[..., : cfg.n_basis]  # [B, A, Bg]
+    d_a = (coeffs[..., None] * av.sh0_anchor_basis[None]).sum(2)  # [B, A, 3]
+    dense = av.sparse_weights("gauss_anchor", d_a.device, d_a.dtype).to_dense()  # [G, A]
+    w_g = torch.einsum("ga,bak->bgk", dense, coeffs)
+    pre = av.sh0_bias[None] + (w_g[..., None] * av.sh0_basis[None]).sum(2) + torch.einsum("ga,bad->bgd", dense, d_a)
+    torch.testing.assert_close(out.sh[:, :, 0], gm.activate_sh0(pre), rtol=1e-5, atol=1e-6)
+    out.sh.sum().backward()
+    assert av.sh0_anchor_basis.grad is not None and av.sh0_anchor_basis.grad.abs().max() > 0
+    groups = {g["name"]: g for g in av.param_groups()}
+    assert groups["sh0_anchor_basis"]["lr"] == groups["sh0_basis"]["lr"]
+    assert "sh0_anchor_basis" not in {g["name"] for g in plain.param_groups()}

@@ -162,6 +162,8 @@ class GaussianAvatar(nn.Module):
         self.gauss_pos_basis = z(G, Bg, 3)  # [G, Bg, 3] metres per coefficient
         self.ctrl_bias = z(C, 3)  # [C, 3] metres
         self.ctrl_basis = z(C, Bc, 3)
+        # ModelConfig.anchor_sh0: a colour basis per anchor, its delta interpolated to the Gaussians like ``w``
+        self.sh0_anchor_basis = z(A, Bg, 3) if cfg.anchor_sh0 and Bg else None  # [A, Bg, 3] pre-tanh
 
     # --- helpers -------------------------------------------------------------------------
     _LEGACY_HEAD_KEYS = ("mlp.", "uv_decoder.", "gauss_uv")
@@ -312,7 +314,7 @@ class GaussianAvatar(nn.Module):
         ("sh0_bias", "sh0_bias"), ("sh0_basis", "sh0_basis"),
         ("shn_bias", "shn_bias"), ("shn_basis", "shn_basis"),
         ("ctrl_bias", "ctrl_bias"), ("ctrl_basis", "ctrl_basis"),
-        ("gauss_pos_basis", "gauss_pos_basis"),
+        ("gauss_pos_basis", "gauss_pos_basis"), ("sh0_anchor_basis", "sh0_basis"),
     )
 
     def param_groups(self, lrs: LearningRates | None = None) -> list[dict]:
@@ -328,7 +330,7 @@ class GaussianAvatar(nn.Module):
                    "weight_decay": lrs.mlp_weight_decay}]
         for attr, lr_name in self._GROUPS:
             p = getattr(self, attr)
-            if p.numel():
+            if p is not None and p.numel():
                 groups.append({"name": attr, "params": [p], "lr": getattr(lrs, lr_name), "weight_decay": 0.0})
         covered = {id(p) for g in groups for p in g["params"]}
         missing = [n for n, p in self.named_parameters() if id(p) not in covered and p.numel()]
@@ -339,6 +341,6 @@ class GaussianAvatar(nn.Module):
     def parameter_counts(self) -> dict[str, int]:
         """Number of scalars per parameter group (and ``total``)."""
         out = {"mlp": sum(p.numel() for p in self.pose_head.parameters())}
-        out.update({a: getattr(self, a).numel() for a, _ in self._GROUPS})
+        out.update({a: getattr(self, a).numel() for a, _ in self._GROUPS if getattr(self, a) is not None})
         out["total"] = sum(out.values())
         return out

@@ -133,9 +133,19 @@ class AnchorMLPHead(PoseHead):
             position=gm.basis_delta(avatar.gauss_pos_basis, w_g),
             scale=gm.basis_delta(avatar.scale_basis, w_g),
             rotation=gm.basis_delta(avatar.rotation_basis, w_g),
-            sh0=gm.basis_delta(avatar.sh0_basis, w_g),
+            sh0=self.sh0_delta(avatar, coeffs[..., :Bg], w_g),
             shn=gm.basis_delta(avatar.shn_basis[:, :, :n_sh_rest], w_g) if n_sh_rest else None,
         )
+
+    @staticmethod
+    def sh0_delta(avatar: GaussianAvatar, coeffs_g: Tensor, w_g: Tensor) -> Tensor:
+        """``<w_g, ΔΛ_sh0>`` per Gaussian, plus (``ModelConfig.anchor_sh0``) the anchors' ``<w_a, ΔΛ^a_sh0>``
+        interpolated to the Gaussians. coeffs_g [B, A, Bg], w_g [B, G, Bg] -> [B, G, 3]"""
+        d = gm.basis_delta(avatar.sh0_basis, w_g)
+        if avatar.sh0_anchor_basis is None:
+            return d
+        d_a = torch.einsum("bak,akd->bad", coeffs_g, avatar.sh0_anchor_basis)  # [B, A, 3]
+        return d + gm.sparse_interpolate(d_a, avatar.sparse_weights("gauss_anchor", d_a.device, d_a.dtype))
 
 
 class MMLPsHead(AnchorMLPHead):
