@@ -6,13 +6,53 @@ import hashlib
 import json
 import os
 import shutil
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[2]
 PREP_ARGS = ["--workers", "1", "--project.tex-size", "128", "--no-figures"]
 """Settings of the session's ``tiny_dataset`` (tests/conftest.py): stages re-run with them are skipped."""
+
+
+class Env(NamedTuple):
+    """What a bad-input case builds on (copies under ``tmp``, never the fixtures themselves)."""
+
+    tmp: Path
+    capture: Path
+    """Pristine session capture (copied, never modified)."""
+    dataset: Path
+    """Pristine session dataset (``avatar-prep all`` of ``capture``)."""
+    run: Path
+    """Session pose-only run for avatar-drive (protected: drive must not write into it)."""
+    drive_out: Path
+    """Outputs of an earlier successful drive (copied as the pre-existing --out)."""
+
+
+Setup = Callable[[Env], tuple[list[str], list[Path]]]
+"""Builds the bad input; returns (argv, paths whose files must be byte-identical afterwards)."""
+
+
+@dataclass(frozen=True)
+class Case:
+    kind: str
+    cli: str
+    setup: Setup
+    expect: tuple[str, ...]
+    """Fragments that must all appear in stderr (file and/or field, reason)."""
+
+
+def case_registry(cases: list[Case]) -> Callable[..., Callable[[Setup], Setup]]:
+    """``case = case_registry(CASES)``; then ``@case(kind, cli, *expect)`` on a setup function appends a Case."""
+    def case(kind: str, cli: str, *expect: str) -> Callable[[Setup], Setup]:
+        def register(fn: Setup) -> Setup:
+            cases.append(Case(kind, cli, fn, expect))
+            return fn
+        return register
+    return case
 
 
 def tree_digest(*roots: Path) -> dict[str, str]:

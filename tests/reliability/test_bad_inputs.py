@@ -12,9 +12,7 @@ import shutil
 import subprocess
 import sys
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -23,8 +21,8 @@ from gsavatar.drive.cli import main as drive_main
 from gsavatar.prep.cli import main as prep_main
 from gsavatar.train.cli import main as train_main
 from gsavatar.utils.io import write_image
-from reliability.helpers import (PREP_ARGS, copy_capture, copy_dataset, edit_json, edit_npz, flip_byte, subprocess_env,
-                                 tree_digest, truncate)
+from reliability.helpers import (PREP_ARGS, Case, Env, case_registry, copy_capture, copy_dataset, edit_json, edit_npz,
+                                 flip_byte, subprocess_env, tree_digest, truncate)
 
 TRUNCATED_BVH = """HIERARCHY
 ROOT Hips
@@ -49,39 +47,8 @@ DRIVE_ARGS = ["--lpips", "off", "--image-scale", "0.25", "--count", "2"]
 MAINS = {"avatar-prep": prep_main, "avatar-train": train_main, "avatar-drive": drive_main}
 
 
-class Env(NamedTuple):
-    tmp: Path
-    capture: Path
-    """Pristine session capture (copied, never modified)."""
-    dataset: Path
-    """Pristine session dataset (``avatar-prep all`` of ``capture``)."""
-    run: Path
-    """Session pose-only run for avatar-drive (protected: drive must not write into it)."""
-    drive_out: Path
-    """Outputs of an earlier successful drive (copied as the pre-existing --out)."""
-
-
-Setup = Callable[[Env], tuple[list[str], list[Path]]]
-"""Builds the corrupted input; returns (argv, paths whose files must be byte-identical afterwards)."""
-
-
-@dataclass(frozen=True)
-class Case:
-    kind: str
-    cli: str
-    setup: Setup
-    expect: tuple[str, ...]
-    """Fragments that must all appear in stderr (file and/or field, reason)."""
-
-
 CASES: list[Case] = []
-
-
-def case(kind: str, cli: str, *expect: str):
-    def register(fn: Setup) -> Setup:
-        CASES.append(Case(kind, cli, fn, expect))
-        return fn
-    return register
+case = case_registry(CASES)
 
 
 # --------------------------------------------------------------------------- avatar-prep

@@ -21,9 +21,7 @@ import threading
 import time
 import zipfile
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -34,41 +32,15 @@ from gsavatar.drive.cli import main as drive_main
 from gsavatar.prep.cli import main as prep_main
 from gsavatar.train.cli import main as train_main
 from gsavatar.utils.io import read_image, read_npz, write_image
-from reliability.helpers import PREP_ARGS, copy_capture, copy_dataset, subprocess_env, tree_digest
+from reliability.helpers import (PREP_ARGS, Case, Env, case_registry, copy_capture, copy_dataset, subprocess_env,
+                                 tree_digest)
 
 DRIVE_ARGS = ["--lpips", "off", "--image-scale", "0.25"]
 MAINS = {"avatar-prep": prep_main, "avatar-train": train_main, "avatar-drive": drive_main}
 
 
-class Env(NamedTuple):
-    tmp: Path
-    capture: Path
-    dataset: Path
-    run: Path
-    drive_out: Path
-
-
-Setup = Callable[[Env], tuple[list[str], list[Path]]]
-"""Builds the hostile input; returns (argv, paths whose files must be byte-identical afterwards)."""
-
-
-@dataclass(frozen=True)
-class Case:
-    kind: str
-    cli: str
-    setup: Setup
-    expect: tuple[str, ...]
-    """Fragments that must all appear in the one ``error:`` line (file, field, reason)."""
-
-
 CASES: list[Case] = []
-
-
-def case(kind: str, cli: str, *expect: str):
-    def register(fn: Setup) -> Setup:
-        CASES.append(Case(kind, cli, fn, expect))
-        return fn
-    return register
+case = case_registry(CASES)
 
 
 # --------------------------------------------------------------------------- builders

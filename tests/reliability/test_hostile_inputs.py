@@ -28,7 +28,8 @@ from gsavatar.data_schema import SchemaError
 from gsavatar.utils.io import atomic_write_bytes, decode_mask
 from gsavatar.utils.paths import check_name, output_path, output_roots
 from reliability.helpers import PREP_ARGS, copy_capture, copy_dataset, edit_json, subprocess_env, tree_digest
-from reliability.test_bad_inputs import TRAIN_ARGS, Env, run_cli
+from reliability.helpers import Env
+from reliability.test_bad_inputs import TRAIN_ARGS, run_cli
 
 OUTSIDE = "outside"
 """Folder beside every test's inputs that a traversal would write into; must stay absent."""

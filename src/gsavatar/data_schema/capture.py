@@ -18,7 +18,6 @@ fully by :func:`check_images`.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 

@@ -7,13 +7,13 @@ stored top row first, so texel row ``y`` covers ``v = 1 - (y + 0.5) / H``.
 from __future__ import annotations
 
 import math
-import stat
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
 from gsavatar.utils.errors import SchemaError
+from gsavatar.utils.paths import check_regular_file
 
 
 class ObjMesh(NamedTuple):
@@ -50,13 +50,7 @@ def read_obj(path: str | Path) -> ObjMesh:
     line (``mesh.obj: line 1234: vt: non-finite texture coordinate 'vt nan 0.5'``) and for a face
     with a bad or out-of-range index; the file must be a regular file (a FIFO would block).
     """
-    path = Path(path)
-    try:
-        st = path.stat()
-    except FileNotFoundError:
-        raise SchemaError(path, "", "file not found") from None
-    if not stat.S_ISREG(st.st_mode):
-        raise SchemaError(path, "", "not a regular file")
+    path = check_regular_file(path, "OBJ file")
     verts: list[list[float]] = []
     uvs: list[list[float]] = []
     faces: list[list[int]] = []

@@ -43,15 +43,15 @@ Nothing is allocated from a declared count before the rows that back it are foun
 
 from __future__ import annotations
 
-import stat
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from gsavatar.utils.errors import SchemaError
 from gsavatar.data_schema.limits import MAX_FPS, MIN_FPS
+from gsavatar.utils.errors import SchemaError
+from gsavatar.utils.paths import check_regular_file
 
 POSITION_CHANNELS = ("Xposition", "Yposition", "Zposition")
 ROTATION_CHANNELS = ("Xrotation", "Yrotation", "Zrotation")
@@ -225,15 +225,7 @@ def _parse_joint(tk: _Tokens, name: str, parent: int, out: dict, depth: int = 0)
 
 def read_bvh(path: str | Path) -> BvhMotion:
     """Parse a BVH file. Raises :class:`SchemaError` (file, ``line N``) on malformed input."""
-    path = Path(path)
-    try:
-        st = path.stat()
-    except FileNotFoundError:
-        raise SchemaError(path, "", "file not found") from None
-    if not stat.S_ISREG(st.st_mode):
-        raise SchemaError(path, "", "not a regular file")
-    if st.st_size > MAX_BVH_BYTES:
-        raise SchemaError(path, "", f"{st.st_size} bytes, more than the {MAX_BVH_BYTES} a BVH file may have")
+    path = check_regular_file(path, "BVH file", MAX_BVH_BYTES)
     text = path.read_text(encoding="utf-8", errors="replace")
     lines = text.splitlines()
     motion_line = next((i for i, l in enumerate(lines) if l.strip().upper() == "MOTION"), None)

@@ -13,7 +13,6 @@ import hashlib
 import json
 import math
 import os
-import stat
 import tempfile
 import zipfile
 import zlib
@@ -24,6 +23,7 @@ import numpy as np
 
 from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.jsonio import is_int, parse_json_text
+from gsavatar.utils.paths import check_regular_file
 
 
 NO_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
@@ -99,19 +99,6 @@ def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
 
 MAX_IMAGE_PIXELS = 1 << 28
 """Largest image read (268M pixels, e.g. 16k x 16k); OpenCV refuses above 2^30 pixels by itself."""
-
-
-def check_regular_file(path: str | Path, what: str = "file") -> Path:
-    """``path`` if it names a regular file. SchemaError naming it when it is missing or is a FIFO, device,
-    socket or directory: opening a FIFO blocks forever (cv2.imread, OpenImageIO, np.load would hang)."""
-    path = Path(path)
-    try:
-        st = path.stat()
-    except FileNotFoundError:
-        raise SchemaError(path, "", f"{what} not found") from None
-    if not stat.S_ISREG(st.st_mode):
-        raise SchemaError(path, "", "not a regular file" + ("" if what == "file" else f" ({what} expected)"))
-    return path
 
 
 def read_image(path: str | Path) -> np.ndarray:

@@ -12,10 +12,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import stat
 from pathlib import Path, PurePath
 
 from gsavatar.utils.errors import SchemaError
+from gsavatar.utils.paths import check_regular_file
 
 MAX_JSON_BYTES = 64 << 20
 """Largest JSON file read (64 MiB: a calibration of thousands of cameras is a few MB)."""
@@ -82,15 +82,7 @@ def read_json(path: str | Path, max_bytes: int = MAX_JSON_BYTES):
     """Read and strictly parse a JSON file. SchemaError names the file for a missing file, a
     non-regular file (FIFO, device, directory), a file over ``max_bytes``, non-UTF-8 bytes, invalid
     JSON (with the line), a duplicate key (with the key), NaN/Infinity, or nesting over MAX_JSON_DEPTH."""
-    path = Path(path)
-    try:
-        st = path.stat()
-    except FileNotFoundError:
-        raise SchemaError(path, "", "file not found") from None
-    if not stat.S_ISREG(st.st_mode):
-        raise SchemaError(path, "", "not a regular file")
-    if st.st_size > max_bytes:
-        raise SchemaError(path, "", f"{st.st_size} bytes, more than the {max_bytes} a JSON file may have here")
+    path = check_regular_file(path, "JSON file", max_bytes)
     try:
         text = path.read_bytes().decode("utf-8")
     except UnicodeDecodeError:

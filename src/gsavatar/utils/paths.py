@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import re
+import stat
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -82,3 +83,19 @@ def check_output(path: str | Path) -> None:
     """Raise SchemaError if output roots are active and ``path`` resolves outside all of them."""
     if _ROOTS and not any(Path(path).resolve().is_relative_to(r) for r in _ROOTS):
         raise SchemaError(path, "", f"would be written outside the output folder ({', '.join(map(str, _ROOTS))})")
+
+
+def check_regular_file(path: str | Path, what: str = "file", max_bytes: int | None = None) -> Path:
+    """``path`` if it names a regular file (of at most ``max_bytes``). SchemaError naming it when it is missing,
+    is a FIFO, device, socket or directory (opening a FIFO blocks forever: cv2.imread, OpenImageIO, np.load
+    would hang), or is too large to be what it claims."""
+    path = Path(path)
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        raise SchemaError(path, "", f"{what} not found") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise SchemaError(path, "", "not a regular file" + ("" if what == "file" else f" ({what} expected)"))
+    if max_bytes is not None and st.st_size > max_bytes:
+        raise SchemaError(path, "", f"{st.st_size} bytes, more than the {max_bytes} a {what} may have here")
+    return path
