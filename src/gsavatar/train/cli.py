@@ -52,7 +52,9 @@ class Eval:
 
     def run_(self) -> None:
         from gsavatar.train.runs import evaluate_run
+        from gsavatar.utils.paths import add_output_root
 
+        add_output_root(self.run)  # eval images and metrics stay in the run
         print(json.dumps(evaluate_run(self.run, self.eval_frames), indent=1))
 
 
@@ -69,7 +71,9 @@ class Export:
 
     def run_(self) -> None:
         from gsavatar.train.runs import export_ply
+        from gsavatar.utils.paths import add_output_root
 
+        add_output_root(Path(self.out).parent)  # the one file named, nothing beside it elsewhere
         export_ply(self.run, self.frame, self.out)
         print(f"wrote {self.out}")
 
@@ -91,7 +95,9 @@ class Turntable:
 
     def run_(self) -> None:
         from gsavatar.train.runs import render_turntable
+        from gsavatar.utils.paths import add_output_root
 
+        add_output_root(Path(self.out).parent)
         print(f"wrote {render_turntable(self.run, self.out, self.frame, self.views, self.size)}")
 
 
