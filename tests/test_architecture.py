@@ -25,7 +25,7 @@ LAYERS: dict[str, int] = {
     "runs": 5,  # a trained run: config, checkpoints, load_run, render_views
     "prep": 6,
     "synth": 6,
-    "importers": 6,  # real capture sources (SMPL-X bodies; dataset layouts to come)
+    "importers": 6,  # real capture sources (SMPL-X bodies, THuman4.0/AvatarReX layouts)
     "train": 6,
     "drive": 7,
 }
@@ -34,6 +34,8 @@ LAYERS: dict[str, int] = {
 ALLOWED: dict[tuple[str, str], str] = {
     ("gsavatar.prep.cli", "gsavatar.synth.cli"):
         "`avatar-prep synth` registers the synthetic capture source's command; nothing else in prep sees synth",
+    ("gsavatar.prep.cli", "gsavatar.importers.cli"):
+        "`avatar-prep import` registers the real capture sources' command; nothing else in prep sees importers",
 }
 """Exceptions by (importer module, imported module), each with its reason."""
 

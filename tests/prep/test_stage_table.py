@@ -49,7 +49,7 @@ def test_table_is_in_dependency_order_and_covers_every_stage():
         assert dataclasses.is_dataclass(s.config) and s.config.__doc__, s.name
         assert all(f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
                    for f in dataclasses.fields(s.config)), f"{s.name}: every option needs its (one) default"
-    assert list(COMMANDS) == ["synth", *BY_NAME, "all", "verify"]
+    assert list(COMMANDS) == ["synth", "import", *BY_NAME, "all", "verify"]  # capture sources first
 
 
 @pytest.mark.parametrize("argv_all, argv_stage", [([], {s: [] for s in STAGE_ARGS}), (ALL_ARGS, STAGE_ARGS)],

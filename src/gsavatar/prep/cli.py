@@ -1,6 +1,7 @@
 """``avatar-prep``: staged, resumable data preparation. Each stage is a subcommand.
 
     avatar-prep synth --out cap --preset tiny
+    avatar-prep import --layout thuman4 --src subject00 --smplx-model SMPLX_NEUTRAL.npz --out cap
     avatar-prep all --capture cap --out ds
     avatar-prep verify ds
 """
@@ -18,7 +19,8 @@ from gsavatar.prep.common import StageArgs
 from gsavatar.prep.configs import LocalizeConfig
 from gsavatar.prep.project_uv import ProjectConfig
 from gsavatar.prep.table import STAGES, Stage, config_of, default_configs, run_stages
-from gsavatar.synth.cli import Synth  # the one prep -> synth import: the capture source's command (docs/architecture.md)
+from gsavatar.importers.cli import Import  # the capture sources' commands: the one prep -> importers import
+from gsavatar.synth.cli import Synth  # and the one prep -> synth import (docs/architecture.md)
 from gsavatar.utils.cli import run_reporting_errors
 
 
@@ -77,6 +79,7 @@ class Verify:
 
 COMMANDS: dict[str, type] = {
     "synth": Synth,
+    "import": Import,
     **{s.name: stage_command(s) for s in STAGES},
     "all": All,
     "verify": Verify,

@@ -89,6 +89,38 @@ def atomic_save_npz(path: str | Path, **arrays: np.ndarray) -> None:
                     np.lib.format.write_array(f, np.asanyarray(value), allow_pickle=False)
 
 
+def atomic_link(target: str | Path, path: str | Path, how: str = "symlink") -> None:
+    """Make ``path`` a symbolic link to ``target`` (an absolute path), a hard link to it, or a copy of it
+    (``how``: "symlink", "hardlink", "copy"), replacing whatever is at ``path`` in one rename.
+
+    Only ``path``'s folder is checked against the command's output roots: a link into a capture's source
+    points outside ``--out`` by design, and replacing it replaces the link, never what it points to.
+    """
+    import shutil
+
+    from gsavatar.utils.paths import check_output
+
+    path = Path(path)
+    if how not in ("symlink", "hardlink", "copy"):
+        raise ValueError(f"how must be 'symlink', 'hardlink' or 'copy', got {how!r}")
+    if path.name in ("", ".", ".."):
+        raise SchemaError(path, "", "not a file name")
+    check_output(path.parent)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mktemp(prefix=f".{path.name}.", suffix=".link", dir=path.parent))
+    try:
+        if how == "symlink":
+            os.symlink(Path(target).resolve(), tmp)
+        elif how == "hardlink":
+            os.link(target, tmp)
+        else:
+            shutil.copyfile(target, tmp)
+        os.replace(tmp, path)
+    finally:
+        if tmp.is_symlink() or tmp.exists():
+            tmp.unlink()
+
+
 def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
