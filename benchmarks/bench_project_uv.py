@@ -50,7 +50,9 @@ def _albedo(p: np.ndarray) -> np.ndarray:
     return np.stack([r, g, b], -1)
 
 
-def builtin_scene(work: Path, n_views: int, img: int, frames: int, uv_cache: Path):
+def builtin_scene(work: Path, n_views: int, img: int, frames: int, uv_cache: Path, height: int | None = None,
+                  ext: str = ".png"):
+    """``n_views`` cameras of ``img`` x ``height`` (default square) pixels; images stored as ``ext`` (.png/.jpg)."""
     from gsavatar.data_schema.template import Template
     from gsavatar.utils.io import write_image
 
@@ -71,9 +73,10 @@ def builtin_scene(work: Path, n_views: int, img: int, frames: int, uv_cache: Pat
         a = 2 * np.pi * i / n_views
         eye = np.array([2.6 * np.sin(a), 1.0 + (0.5 if i % 2 else -0.2), 2.6 * np.cos(a)])
         R, T = look_at(eye, np.array([0.0, 1.0, 0.0]), np.array([0.0, 1.0, 0.0]))
-        f = 1.25 * img
-        K = np.array([[f, 0, (img - 1) / 2], [0, f, (img - 1) / 2], [0, 0, 1]])
-        cams[f"cam{i:02d}"] = Camera(f"cam{i:02d}", K, R, T, np.zeros(5), img, img)
+        W, H = img, height or img
+        f = 1.25 * min(W, H)
+        K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]])
+        cams[f"cam{i:02d}"] = Camera(f"cam{i:02d}", K, R, T, np.zeros(5), W, H)
     posed = []
     for fr in range(frames):  # rigid motion per frame; the texture stays attached to the rest surface
         ang = 0.2 * fr
@@ -83,19 +86,19 @@ def builtin_scene(work: Path, n_views: int, img: int, frames: int, uv_cache: Pat
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(o3d.core.Tensor(Vp), o3d.core.Tensor(F.astype(np.uint32)))
         for name, cam in cams.items():
-            rays = pixel_rays(cam.K, cam.R, cam.T, img, img)
+            rays = pixel_rays(cam.K, cam.R, cam.T, cam.width, cam.height)
             hit = scene.cast_rays(o3d.core.Tensor(rays))
             prim = hit["primitive_ids"].numpy().astype(np.int64)
             buv = hit["primitive_uvs"].numpy().astype(np.float64)
             m = np.isfinite(hit["t_hit"].numpy())
-            image = np.full((img, img, 3), 0.05, np.float32)
+            image = np.full((cam.height, cam.width, 3), 0.05, np.float32)
             tri = F[prim[m]]
             w = np.stack([1 - buv[m][:, 0] - buv[m][:, 1], buv[m][:, 0], buv[m][:, 1]], 1)
             rest = (V[tri].astype(np.float64) * w[..., None]).sum(1)
             image[m] = _albedo(rest)
-            write_image(work / "images" / name / f"{fr:08d}.png", image)
+            write_image(work / "images" / name / f"{fr:08d}{ext}", image)
             write_image(work / "masks" / name / f"{fr:08d}.png", m.astype(np.float32))
-    cap = Capture(work, 30.0, frames, cams, None, t, None, {}, {n: ".png" for n in cams})  # type: ignore[arg-type]
+    cap = Capture(work, 30.0, frames, cams, None, t, None, {}, {n: ext for n in cams})  # type: ignore[arg-type]
     return cap, posed
 
 
@@ -137,10 +140,15 @@ def main() -> None:
     ap.add_argument("--cams", nargs="+", help="cameras (default: all)")
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024])
     ap.add_argument("--views", type=int, default=16, help="built-in scene: number of views")
-    ap.add_argument("--img", type=int, default=1024, help="built-in scene: image size")
+    ap.add_argument("--img", type=int, default=1024, help="built-in scene: image width (and height unless --height)")
+    ap.add_argument("--height", type=int, default=0, help="built-in scene: image height (0 = --img)")
+    ap.add_argument("--jpeg", action="store_true", help="built-in scene: JPEG images (masks stay PNG)")
+    ap.add_argument("--thuman4", action="store_true", help="built-in scene of THuman4.0's size: 24 views of 1330x1150 JPEG")
     ap.add_argument("--no-mean", action="store_true", help="skip the 'mean' fusion comparison")
     ap.add_argument("--uv-cache", type=Path, default=Path(tempfile.gettempdir()) / "gsavatar_uv_cache")
     args = ap.parse_args()
+    if args.thuman4:
+        args.views, args.img, args.height, args.jpeg = 24, 1330, 1150, True
 
     tmp = None
     if args.capture is not None:
@@ -158,9 +166,11 @@ def main() -> None:
         n = max(args.frames) + 1 if args.frames else 2
         frames = args.frames or [0, 1]
         t0 = time.perf_counter()
-        cap, posed_all = builtin_scene(Path(tmp.name), args.views, args.img, n, args.uv_cache)
+        cap, posed_all = builtin_scene(Path(tmp.name), args.views, args.img, n, args.uv_cache, args.height or None,
+                                       ".jpg" if args.jpeg else ".png")
         posed = [posed_all[f] for f in frames]
-        src = f"built-in ellipsoid scene ({args.views} views {args.img}^2, rendered in {time.perf_counter() - t0:.1f} s)"
+        src = (f"built-in ellipsoid scene ({args.views} views {args.img}x{args.height or args.img} "
+               f"{'JPEG' if args.jpeg else 'PNG'}, rendered in {time.perf_counter() - t0:.1f} s)")
     cams = args.cams or list(cap.cameras)
     template = cap.template
     print(f"# bench_project_uv: {src}; {len(template.faces)} triangles, {len(cams)} views, frames {frames}")
@@ -173,6 +183,19 @@ def main() -> None:
         views_of[f] = load_frame_views(cap, f, cams)
         io_s.append(time.perf_counter() - t0)
     io = float(np.mean(io_s))
+    # raw decode only (OpenCV, 8-bit, no float conversion or checks): the floor no reader can go below
+    import cv2
+
+    raw_s = []
+    for f in frames:
+        t0 = time.perf_counter()
+        for c in cams:
+            assert cv2.imread(str(cap.image_path(c, f)), cv2.IMREAD_COLOR) is not None
+            assert cv2.imread(str(cap.mask_path(c, f)), cv2.IMREAD_UNCHANGED) is not None
+        raw_s.append(time.perf_counter() - t0)
+    raw = float(np.mean(raw_s))
+    print(f"# decode per frame: {raw:.3f} s raw (cv2.imread of {len(cams)} images + masks), {io:.3f} s through "
+          f"gsavatar's readers (float conversion, mask decoding, finite check)")
 
     rows = []
     for size in args.sizes:
@@ -200,10 +223,11 @@ def main() -> None:
                      float(np.mean(p_med)), float(np.mean(p_mean)) if p_mean else float("nan")))
 
     print()
-    print("| tex size | texel map (s, once) | texels projected | project s/frame | I/O floor s/frame | project / I/O | texels/s | seen>=2 | PSNR median_band (dB) | PSNR mean (dB) |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("| tex size | texel map (s, once) | texels projected | project s/frame | read s/frame | project / read | raw decode s/frame | project / raw decode | texels/s | seen>=2 | PSNR median_band (dB) | PSNR mean (dB) |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for size, t_map, n, s, io_, tps, s2, pm, pmean in rows:
-        print(f"| {size} | {t_map:.2f} | {n:,} | {s:.3f} | {io_:.3f} | {s / io_:.2f} | {tps / 1e6:.2f} M | {100 * s2:.0f} % | {pm:.2f} | {pmean:.2f} |")
+        print(f"| {size} | {t_map:.2f} | {n:,} | {s:.3f} | {io_:.3f} | {s / io_:.2f} | {raw:.3f} | {s / raw:.2f} | {tps / 1e6:.2f} M | "
+              f"{100 * s2:.0f} % | {pm:.2f} | {pmean:.2f} |")
     if tmp is not None:
         tmp.cleanup()
 
