@@ -209,3 +209,28 @@ def test_resume_identifies_the_dataset_by_content_not_path(tiny_dataset, tmp_pat
     assert main(["avatar", "--dataset", str(other), *args, "--out", str(run)]) == 2
     assert "dataset_id" in capsys.readouterr().err
     assert (run / "checkpoints" / "latest.pt").read_bytes() == before
+
+
+def test_checkpoint_of_an_older_model_config_resumes(tmp_path):
+    """A model-config field added later (with a default that keeps the old behaviour) does not orphan a run
+    whose checkpoint predates it; a real difference is still refused."""
+    import dataclasses
+
+    import torch
+
+    from gsavatar.models.config import ModelConfig, model_preset
+    from gsavatar.runs.checkpoint import load_checkpoint, save_checkpoint
+    from gsavatar.utils.errors import SchemaError
+    from gsavatar.utils.jsonio import dataclass_defaults
+
+    now = json.loads(json.dumps(dataclasses.asdict(model_preset("tiny")), default=list))
+    old = {k: v for k, v in now.items() if k not in ("anchor_sh0", "mlp_init")}  # written before those fields
+    ckpt = tmp_path / "latest.pt"
+    save_checkpoint(ckpt, step=3, config={"model": old}, modules={"m": torch.nn.Linear(1, 1)}, optimizer=None)
+    state = load_checkpoint(ckpt, {"model": now}, ("model",), defaults={"model": dataclass_defaults(ModelConfig)})
+    assert state["step"] == 3
+    with pytest.raises(SchemaError, match="config.model"):  # without defaults: the old behaviour
+        load_checkpoint(ckpt, {"model": now}, ("model",))
+    with pytest.raises(SchemaError, match="config.model"):  # a field that really differs
+        load_checkpoint(ckpt, {"model": {**now, "anchor_sh0": True}}, ("model",),
+                        defaults={"model": dataclass_defaults(ModelConfig)})

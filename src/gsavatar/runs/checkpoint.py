@@ -49,11 +49,14 @@ def resume_hint(ckpt: Path, step: int) -> str:
     return "no checkpoint yet: re-running the same command starts from step 0"
 
 
-def load_checkpoint(path: str | Path, config: dict | None = None, strict_config_keys: tuple[str, ...] = ()) -> dict:
+def load_checkpoint(path: str | Path, config: dict | None = None, strict_config_keys: tuple[str, ...] = (),
+                    defaults: dict[str, dict] | None = None) -> dict:
     """Load safely (``weights_only=True``) and check format and, for ``strict_config_keys``, the config.
 
-    Raises SchemaError naming the file and the first mismatching config field, e.g. a
-    checkpoint of another model size or another dataset.
+    ``defaults``: per strict key, the values of config fields added since a checkpoint was written (a field
+    missing from the saved dict counts as its default, so adding a field with a default that keeps the old
+    behaviour does not orphan earlier runs). Raises SchemaError naming the file and the first mismatching
+    config field, e.g. a checkpoint of another model size or another dataset.
     """
     path = Path(path)
     if not path.exists():
@@ -75,6 +78,8 @@ def load_checkpoint(path: str | Path, config: dict | None = None, strict_config_
     if config is not None:
         for key in strict_config_keys:
             a, b = _get(saved, key), _get(config, key)
+            if defaults and key in defaults and isinstance(a, dict):
+                a = {**defaults[key], **a}
             if a != b:
                 raise SchemaError(path, f"config.{key}", f"checkpoint has {a!r}, this run has {b!r}: it belongs to another configuration")
     return state

@@ -34,10 +34,10 @@ from gsavatar.models.predictor import AppearancePredictor, PredictorConfig
 from gsavatar.runs.checkpoint import load_checkpoint, resume_hint, save_checkpoint
 from gsavatar.runs.load import LoadedRun, load_run
 from gsavatar.train.sampler import step_generator
-from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.cli import set_resume_hint
+from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.io import atomic_save_npz, atomic_write_json, read_npz
-from gsavatar.utils.jsonio import config_to_json, parse_json_text
+from gsavatar.utils.jsonio import config_to_json, dataclass_defaults, parse_json_text
 from gsavatar.utils.outdir import claim_output_dir
 
 TARGETS_FORMAT = "gsavatar-predictor-targets"
@@ -339,7 +339,8 @@ class PredictorTrainer:
         self.step = 0
         if self.ckpt.exists():
             state = load_checkpoint(self.ckpt, self.config, strict_config_keys=(
-                "model", "num_anchors", "pose_dim", "targets_step", "train.seed", "train.batch_size", "train.window"))
+                "model", "num_anchors", "pose_dim", "targets_step", "train.seed", "train.batch_size", "train.window"),
+                defaults={"model": dataclass_defaults(PredictorConfig)})
             model.load_state_dict(state["modules"]["predictor"])
             self.optim.load_state_dict(state["optimizer"])
             self.step = int(state["step"])

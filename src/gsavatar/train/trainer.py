@@ -17,7 +17,7 @@ from gsavatar.data_schema.dataset import dataset_fingerprint
 from gsavatar.data_schema.prepared import load_scene
 from gsavatar.metrics.lpips import load_lpips
 from gsavatar.models.batch import FrameBatch
-from gsavatar.models.config import LearningRates
+from gsavatar.models.config import LearningRates, ModelConfig
 from gsavatar.models.net import build_net
 from gsavatar.runs.checkpoint import check_same_dataset, load_checkpoint, resume_hint, save_checkpoint
 from gsavatar.runs.config import TrainConfig, model_config, resolve, to_json
@@ -28,6 +28,7 @@ from gsavatar.train.data import ViewDataset
 from gsavatar.train.sampler import StepBatchSampler, step_generator
 from gsavatar.utils.cli import set_resume_hint
 from gsavatar.utils.io import atomic_write_json, atomic_write_text
+from gsavatar.utils.jsonio import dataclass_defaults
 from gsavatar.utils.outdir import claim_output_dir
 
 
@@ -97,7 +98,8 @@ class Trainer:
     def _resume(self) -> None:
         # The dataset is identified by content (stage configs + file checksums), not by how its path was spelt;
         # checkpoints written before ``dataset_id`` existed are compared by resolved path.
-        state = load_checkpoint(self.ckpt, self.config_json(), strict_config_keys=("model", "train.seed", "train.batch_size"))
+        state = load_checkpoint(self.ckpt, self.config_json(), strict_config_keys=("model", "train.seed", "train.batch_size"),
+                                defaults={"model": dataclass_defaults(ModelConfig)})
         check_same_dataset(self.ckpt, state["config"], Path(self.cfg.dataset), self.dataset_id)
         self.net.load_state_dict(state["modules"]["net"])
         self.optim.load_state_dict(state["optimizer"])

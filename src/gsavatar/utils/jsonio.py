@@ -113,3 +113,10 @@ def config_to_json(obj, exclude: tuple[str, ...] = ()):
     if isinstance(obj, PurePath):
         return str(obj)
     return obj
+
+
+def dataclass_defaults(cls) -> dict:
+    """JSON values of a config dataclass's fields that have a default: what a saved config written before a
+    field existed meant (:func:`gsavatar.runs.checkpoint.load_checkpoint`'s ``defaults``)."""
+    out = {f.name: f.default for f in dataclasses.fields(cls) if f.default is not dataclasses.MISSING}
+    return json.loads(json.dumps(out, default=lambda v: list(v) if isinstance(v, tuple) else str(v)))
