@@ -14,12 +14,13 @@ import torch
 
 from gsavatar.data_schema.dataset import dataset_fingerprint
 from gsavatar.data_schema.prepared import PreparedScene, load_scene
+from gsavatar.models.config import ModelConfig
 from gsavatar.models.net import AvatarNet, build_net
 from gsavatar.models.predictor import AppearancePredictor, PredictorConfig
 from gsavatar.runs.checkpoint import check_same_dataset, load_checkpoint
 from gsavatar.runs.config import TrainConfig, check_train_config, from_json, model_config, resolve
 from gsavatar.utils.errors import SchemaError
-from gsavatar.utils.jsonio import read_json
+from gsavatar.utils.jsonio import dataclass_defaults, read_json
 
 
 class LoadedRun(NamedTuple):
@@ -62,7 +63,7 @@ def load_run(run: str | Path, device: str = "auto") -> LoadedRun:
     scene = load_scene(cfg.dataset)
     net = build_net(scene, model_config(cfg), cfg.seed).to(dev)
     ckpt = run / "checkpoints" / "latest.pt"
-    state = load_checkpoint(ckpt, saved, strict_config_keys=("model",))
+    state = load_checkpoint(ckpt, saved, strict_config_keys=("model",), defaults={"model": dataclass_defaults(ModelConfig)})
     check_same_dataset(ckpt, state["config"], cfg.dataset, dataset_fingerprint(cfg.dataset))
     net.load_state_dict(state["modules"]["net"])
     net.eval()

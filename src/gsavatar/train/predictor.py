@@ -340,7 +340,7 @@ class PredictorTrainer:
         if self.ckpt.exists():
             state = load_checkpoint(self.ckpt, self.config, strict_config_keys=(
                 "model", "num_anchors", "pose_dim", "targets_step", "train.seed", "train.batch_size", "train.window"),
-                defaults={"model": dataclass_defaults(PredictorConfig)})
+                defaults={"model": {**dataclass_defaults(PredictorConfig), "residual": False}})  # pre-``residual``: absolute
             model.load_state_dict(state["modules"]["predictor"])
             self.optim.load_state_dict(state["optimizer"])
             self.step = int(state["step"])
