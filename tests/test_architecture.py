@@ -25,7 +25,7 @@ LAYERS: dict[str, int] = {
     "runs": 5,  # a trained run: config, checkpoints, load_run, render_views
     "prep": 6,
     "synth": 6,
-    "importers": 6,  # real capture sources (SMPL-X bodies, THuman4.0/AvatarReX layouts)
+    "importers": 6,  # real capture sources (SMPL-X bodies, THuman4.0/AvatarReX/ActorsHQ layouts)
     "train": 6,
     "drive": 7,
 }

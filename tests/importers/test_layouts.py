@@ -1,11 +1,13 @@
-"""THuman4.0 and AvatarReX layouts imported as capture format v1 (``avatar-prep import``), on sources built at
+"""THuman4.0, AvatarReX and ActorsHQ layouts imported as capture format v1 (``avatar-prep import``), on sources built at
 test time: a fake SMPL-X model (tests/importers/fake_smplx.py), a 6-frame fit, 4 cameras looking at the body,
-flat-coloured silhouette images (posed vertices projected, triangles filled), grey JPEG masks, one lost view.
+flat-coloured silhouette images (posed vertices projected, triangles filled), grey JPEG masks (ActorsHQ: PNG),
+one lost view (THuman4.0/AvatarReX; ActorsHQ lists none).
 
 Checked: the capture validates (``load_capture``, ``check_images``), a lost view drops its frame, images are
 links into the source (or copies), masks become 0/255 PNGs, the calibration conversion projects known points
-as the source's own K/R/T (and distortion) do by hand, the splits are disjoint, paths that escape the source and
-unlisted missing files are refused, and ``avatar-prep all`` prepares the imported capture.
+as the source's own K/R/T (and distortion) do by hand (ActorsHQ: also from the csv's own numbers), the splits are
+disjoint, paths that escape the source and unlisted missing files are refused, and ``avatar-prep all`` prepares the
+imported capture (THuman4.0, ActorsHQ).
 """
 
 from __future__ import annotations
@@ -13,6 +15,8 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+
+import csv
 
 import cv2
 import numpy as np
@@ -32,13 +36,32 @@ F = 6  # frames of the fit
 W, H = 96, 128  # image size
 LOST = (1, 2)  # (camera index, frame) of the lost view
 PREP_ARGS = ["--workers", "1", "--project.tex-size", "128", "--no-figures"]  # as tests/reliability/helpers.py
-PROJ_TOL_PX = 1e-6  # float64 throughout; observed 0 (thuman4) and 4e-14 px (avatarrex, with distortion)
+PROJ_TOL_PX = 1e-6  # float64 throughout; observed 0 (thuman4), 4e-14 px (avatarrex, with distortion), 3e-13 px (actorshq)
+LAYOUT_NAMES = ["thuman4", "avatarrex", "actorshq"]
+
+
+def has_lost_view(layout: str) -> bool:
+    return layout != "actorshq"  # ActorsHQ has no list of lost views
+
+
+def write_actorshq_calibration(file: Path, cams: list) -> None:
+    """ActorsHQ's ``calibration.csv`` of world-to-camera (K, R, T) cameras, as HumanRF's ``write_calibration_csv``
+    spells it: camera-to-world axis-angle (by OpenCV's Rodrigues, not ours), camera position, K over w/h."""
+    with file.open("w", newline="") as fh:
+        wr = csv.writer(fh)
+        wr.writerow(["name", "w", "h", "rx", "ry", "rz", "tx", "ty", "tz", "fx", "fy", "px", "py"])
+        for key, K, R, T, _ in cams:
+            aa = cv2.Rodrigues(R.T)[0].ravel()  # world_from_cam rotation
+            pos = -R.T @ T  # camera centre in the world
+            norm = [K[0, 0] / W, K[1, 1] / H, K[0, 2] / W, K[1, 2] / H]  # fx, fy, px, py over the image size
+            wr.writerow([key, W, H, *(repr(float(v)) for v in [*aa, *pos, *norm])])  # repr: full float64 precision
 
 
 def source_cameras(layout: str) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """(source key, K [3,3], R [3,3], T [3], dist [5]) of 4 cameras around the body, metres, OpenCV axes."""
     out = []
-    keys = ["cam00", "cam01", "cam02", "cam03"] if layout == "thuman4" else ["22010708", "22010710", "cam 3", "22070938"]
+    keys = {"thuman4": ["cam00", "cam01", "cam02", "cam03"], "avatarrex": ["22010708", "22010710", "cam 3", "22070938"],
+            "actorshq": ["Cam001", "Cam002", "Cam003", "Cam004"]}[layout]
     for i, key in enumerate(keys):
         a = 2 * np.pi * i / len(keys) + 0.3
         R, T = look_at(np.array([3.0 * np.sin(a), -0.2 + 0.3 * i, 3.0 * np.cos(a)]), np.array([0.0, -0.4, 0.0]))
@@ -64,7 +87,7 @@ def posed_vertices(model_path: Path, fit: dict) -> tuple[np.ndarray, np.ndarray]
 
 
 def make_source(root: Path, layout: str, model_path: Path) -> Path:
-    """A THuman4.0- or AvatarReX-layout capture in ``root`` (layout table: docs/import.md)."""
+    """A THuman4.0-, AvatarReX- or ActorsHQ-layout capture in ``root`` (layout table: docs/import.md)."""
     fit = random_fit(F, seed=3)
     fit["transl"] = fit["transl"] * 0.2
     np.savez(root / "smpl_params.npz", **fit)
@@ -74,7 +97,7 @@ def make_source(root: Path, layout: str, model_path: Path) -> Path:
     for i, (key, K, R, T, dist) in enumerate(cams):
         if layout == "thuman4":  # flat K/R lists and a column T, as some THuman4.0 files spell them
             calib[key] = {"K": K.ravel().tolist(), "R": R.ravel().tolist(), "T": T.reshape(3, 1).tolist(), "imgSize": [W, H]}
-        else:
+        elif layout == "avatarrex":
             calib[key] = {"K": K.tolist(), "R": R.tolist(), "T": T.tolist(), "distCoeff": [dist.tolist()], "imgSize": [W, H]}
         for f in range(F):
             px = project(verts[f], K, R, T, dist).pixels
@@ -84,13 +107,19 @@ def make_source(root: Path, layout: str, model_path: Path) -> Path:
             img[mask > 0] = (60 + 40 * i, 150, 200 - 20 * f)
             if layout == "thuman4":
                 img_file, mask_file = root / "images" / key / f"{f:08d}.jpg", root / "masks" / key / f"{f:08d}.jpg"
-            else:
+            elif layout == "avatarrex":
                 img_file, mask_file = root / key / f"{f:08d}.jpg", root / key / "mask" / "pha" / f"{f:08d}.jpg"
-            if (i, f) == LOST:
+            else:
+                img_file = root / "4x" / "rgbs" / key / f"{key}_rgb{f:06d}.jpg"
+                mask_file = root / "4x" / "masks" / key / f"{key}_mask{f:06d}.png"
+            if (i, f) == LOST and has_lost_view(layout):
                 continue
             for p, a in ((img_file, img), (mask_file, mask)):
                 p.parent.mkdir(parents=True, exist_ok=True)
                 cv2.imwrite(str(p), a)
+    if layout == "actorshq":
+        write_actorshq_calibration(root / "4x" / "calibration.csv", cams)
+        return root
     lost_key = cams[LOST[0]][0]
     if layout == "thuman4":  # the published lists hold Windows paths
         line = f"D:\\THuman4.0\\subject00\\images\\{lost_key}\\{LOST[1]:08d}.jpg"
@@ -107,7 +136,7 @@ def model_path(tmp_path_factory) -> Path:
     return write_fake_smplx(tmp_path_factory.mktemp("smplx") / "SMPLX_NEUTRAL.npz", rings=4, segs=8)
 
 
-@pytest.fixture(scope="module", params=["thuman4", "avatarrex"])
+@pytest.fixture(scope="module", params=LAYOUT_NAMES)
 def source(request, tmp_path_factory, model_path) -> tuple[str, Path]:
     return request.param, make_source(tmp_path_factory.mktemp(request.param), request.param, model_path)
 
@@ -124,12 +153,16 @@ def test_import_validates(source, model_path, tmp_path):
     cap = load_capture(out)
     check_images(cap)
     info = json.loads((out / "import.json").read_text())
-    assert info["source_frames"] == [f for f in range(F) if f != LOST[1]]  # the lost view's frame is dropped
-    assert info["dropped_frames"] == {str(LOST[1]): [list(cap.cameras)[LOST[0]]]}
-    assert cap.num_frames == F - 1 and cap.motion.num_frames == F - 1
+    n = F - 1 if has_lost_view(layout) else F
+    if has_lost_view(layout):
+        assert info["source_frames"] == [f for f in range(F) if f != LOST[1]]  # the lost view's frame is dropped
+        assert info["dropped_frames"] == {str(LOST[1]): [list(cap.cameras)[LOST[0]]]}
+    else:
+        assert info["source_frames"] == list(range(F)) and info["dropped_frames"] == {}
+    assert cap.num_frames == n and cap.motion.num_frames == n
     assert set(cap.splits) == {"train", "test"}
     tr, te = cap.splits["train"], cap.splits["test"]
-    assert te.cameras == [list(cap.cameras)[-1]] and te.frames == [F - 2]  # defaults: last camera, last 10% (>= 1)
+    assert te.cameras == [list(cap.cameras)[-1]] and te.frames == [n - 1]  # defaults: last camera, last 10% (>= 1)
     assert not set(tr.cameras) & set(te.cameras) and not set(tr.frames) & set(te.frames)
     if layout == "avatarrex":  # "cam 3" is not a plain name: mapped and recorded
         assert "cam02" in cap.cameras and info["cameras"]["cam02"] == "cam 3"
@@ -141,7 +174,9 @@ def test_import_validates(source, model_path, tmp_path):
 
 
 def test_calibration_projects_as_the_source(source):
-    """Known points through the source's K/R/T (+ distortion), by hand, and through our converted cameras."""
+    """Known points through the source's K/R/T (+ distortion), by hand, and through our converted cameras. For
+    ActorsHQ the file holds camera-to-world axis-angle, position and normalised intrinsics written from these
+    K/R/T, so this checks the inversion and de-normalisation."""
     layout, src = source
     imported = LAYOUTS[layout].read(src)
     pts = np.array([[0.0, -0.4, 0.0], [0.3, 0.2, -0.1], [-0.2, -1.1, 0.25], [0.05, 0.5, 0.4]])
@@ -190,9 +225,39 @@ def test_refuses_escapes_and_unlisted_missing_files(tmp_path, model_path, capsys
     assert "--layout thuman4" in capsys.readouterr().err
 
 
-def test_prep_all_on_imported_capture(tmp_path, model_path):
+@pytest.mark.parametrize("layout", ["thuman4", "actorshq"])
+def test_prep_all_on_imported_capture(tmp_path, model_path, layout):
     src = tmp_path / "src"
     src.mkdir()
-    make_source(src, "thuman4", model_path)
-    assert run_import("thuman4", src, model_path, tmp_path / "cap") == 0
+    make_source(src, layout, model_path)
+    assert run_import(layout, src, model_path, tmp_path / "cap") == 0
     assert prep_main(["all", "--capture", str(tmp_path / "cap"), "--out", str(tmp_path / "ds"), *PREP_ARGS]) == 0
+
+
+def test_actorshq_csv_conventions_and_resolution(tmp_path, model_path, capsys):
+    """Known points projected by hand from the csv's own numbers (camera-to-world axis-angle by OpenCV, position,
+    intrinsics times w/h) and through our converted cameras; ``--actorshq-resolution`` picks the folder; a csv
+    with another header is refused naming the file."""
+    src = make_source(tmp_path, "actorshq", model_path)
+    imported = LAYOUTS["actorshq"].read(src)
+    pts = np.array([[0.0, -0.4, 0.0], [0.3, 0.2, -0.1], [-0.2, -1.1, 0.25]])
+    with (src / "4x" / "calibration.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["name"] for r in rows] == list(imported.cameras)
+    for r in rows:
+        v = {k: float(x) for k, x in r.items() if k != "name"}
+        world_from_cam = cv2.Rodrigues(np.array([v["rx"], v["ry"], v["rz"]]))[0]
+        pc = (pts - np.array([v["tx"], v["ty"], v["tz"]])) @ world_from_cam  # = R_c2w^T (x - position)
+        hand = np.stack([v["fx"] * v["w"] * pc[:, 0] / pc[:, 2] + v["px"] * v["w"],
+                         v["fy"] * v["h"] * pc[:, 1] / pc[:, 2] + v["py"] * v["h"]], 1)
+        cam = imported.cameras[r["name"]]
+        assert np.abs(hand - project(pts, cam.K, cam.R, cam.T, cam.dist).pixels).max() < PROJ_TOL_PX, r["name"]
+    # the same source in the 2x folder only: found with --actorshq-resolution 2x, refused without it
+    (src / "4x").rename(src / "2x")
+    assert run_import("actorshq", src, model_path, tmp_path / "a") == 2
+    capsys.readouterr()
+    assert run_import("actorshq", src, model_path, tmp_path / "b", "--actorshq-resolution", "2x") == 0
+    assert json.loads((tmp_path / "b" / "import.json").read_text())["source_frames"] == list(range(F))
+    (src / "2x" / "calibration.csv").write_text("name,w,h,rx,ry,rz,tx,ty,tz,f,px,py\nCam001,96,128,0,0,0,0,0,3,1,0.5,0.5\n")
+    assert run_import("actorshq", src, model_path, tmp_path / "c", "--actorshq-resolution", "2x") == 2
+    assert "calibration.csv: header" in capsys.readouterr().err

@@ -2,8 +2,8 @@
 
 SMPL-X bodies (``smplx_model``: the user's model file; ``smplx_params``: a fit's per-frame parameters;
 ``smplx_body``: template, rig, skin weights and motion; ``smplx_error``: what our LBS format loses); dataset
-layouts (``layouts``: THuman4.0, AvatarReX, one file each) and ``capture_import`` (a layout's capture as
-capture format v1); ``cli``: ``avatar-prep import``. ActorsHQ is planned (docs/import.md).
+layouts (``layouts``: THuman4.0, AvatarReX, ActorsHQ, one file each) and ``capture_import`` (a layout's capture as
+capture format v1); ``cli``: ``avatar-prep import``.
 """
 
 from gsavatar.importers.capture_import import MASK_THRESHOLD, ImportOptions, ImportReport, import_capture
