@@ -34,6 +34,7 @@ import numpy as np
 from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.io import NPZ_READ_ERRORS, atomic_path, atomic_write_json, sha256_file
 from gsavatar.utils.jsonio import read_json
+from gsavatar.utils.paths import is_inside
 
 DATASET_FORMAT = "gsavatar-dataset"
 DATASET_VERSION = 1
@@ -56,10 +57,9 @@ def safe_join(root: Path, rel: str, file: Path, fld: str) -> Path:
     p = Path(rel)
     if p.is_absolute() or ".." in p.parts:
         raise SchemaError(file, fld, f"path {rel!r} escapes the dataset root")
-    full = (root / p).resolve()
-    if not full.is_relative_to(root.resolve()):
+    if not is_inside(root / p, root):  # a symlink inside the dataset pointing out
         raise SchemaError(file, fld, f"path {rel!r} escapes the dataset root")
-    return full
+    return (root / p).resolve()
 
 
 # --------------------------------------------------------------------------- dataset.json

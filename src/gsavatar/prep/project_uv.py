@@ -550,6 +550,11 @@ def warn_mask_coverage(path, mask: np.ndarray) -> str | None:
     return msg
 
 
+def preflight_frames(num_frames: int, max_frames: int) -> list[int]:
+    """Up to ``max_frames`` evenly spaced frame indices of ``[0, num_frames)``: what the pre-projection checks read."""
+    return sorted({int(f) for f in np.linspace(0, num_frames - 1, min(max_frames, num_frames)).round()})
+
+
 def check_mask_coverage(capture: Capture, cams: Sequence[str], max_frames: int = 8, min_ok: float = 0.5) -> None:
     """Refuse a capture whose masks are (almost) all empty or all full, before anything is projected.
 
@@ -560,7 +565,7 @@ def check_mask_coverage(capture: Capture, cams: Sequence[str], max_frames: int =
     from gsavatar.utils.errors import SchemaError
     from gsavatar.utils.io import read_mask
 
-    frames = sorted({int(f) for f in np.linspace(0, capture.num_frames - 1, min(max_frames, capture.num_frames)).round()})
+    frames = preflight_frames(capture.num_frames, max_frames)
     bad: list[str] = []
     n = 0
     for f in frames:

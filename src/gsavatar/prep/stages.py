@@ -127,9 +127,9 @@ def check_cameras_see_body(cap: Capture, cams: list[str], max_frames: int = 8) -
     ``max_frames`` evenly spaced frames (every camera behind or pointed away from it, e.g. R, T given
     camera-to-world): the textures would be empty. Single blind cameras are allowed (a warning)."""
     from gsavatar.prep.pose_template import pose_vertices
-    from gsavatar.prep.project_uv import cameras_seeing
+    from gsavatar.prep.project_uv import cameras_seeing, preflight_frames
 
-    frames = sorted({int(f) for f in np.linspace(0, cap.num_frames - 1, min(max_frames, cap.num_frames)).round()})
+    frames = preflight_frames(cap.num_frames, max_frames)
     verts = pose_vertices(cap, frames).reshape(-1, 3)  # [n*V, 3] world, metres
     seeing = cameras_seeing(verts, [cap.cameras[c] for c in cams])
     if not seeing:

@@ -23,7 +23,7 @@ import numpy as np
 
 from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.jsonio import is_int, parse_json_text
-from gsavatar.utils.paths import check_regular_file
+from gsavatar.utils.paths import check_output, check_regular_file
 
 
 NO_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
@@ -37,8 +37,6 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     ``suffix`` defaults to the final suffix so writers that pick a format from the
     extension (OpenImageIO, OpenCV, numpy) still work.
     """
-    from gsavatar.utils.paths import check_output
-
     path = Path(path)
     check_output(path)  # refused before any folder is made when the path escapes the command's --out
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -97,8 +95,6 @@ def atomic_link(target: str | Path, path: str | Path, how: str = "symlink") -> N
     points outside ``--out`` by design, and replacing it replaces the link, never what it points to.
     """
     import shutil
-
-    from gsavatar.utils.paths import check_output
 
     path = Path(path)
     if how not in ("symlink", "hardlink", "copy"):
