@@ -1,5 +1,6 @@
-"""Driving input: a motion from a ``motion.npz``, another capture, or a BVH file, resampled
-to the frame rate the appearance predictor was trained at.
+"""Driving input: a motion from a ``motion.npz``, another capture, a BVH file (retargeted onto the avatar's rig,
+any convention of joint names, :mod:`gsavatar.motion.joint_names`) or an AMASS-style SMPL-X ``.npz`` (SMPL-X
+rigs, :mod:`gsavatar.motion.amass`), resampled to the frame rate the appearance predictor was trained at.
 
 Frame rate (the paper names it an open problem): the predictor sees finite-difference
 velocities and accelerations of the last ``N_b`` poses, so a motion played at another
@@ -22,6 +23,8 @@ import numpy as np
 
 from gsavatar.data_schema import Capture, Rig, SchemaError, load_capture
 from gsavatar.data_schema.limits import check_fps, check_resampled_frames, fps_problem
+from gsavatar.motion.amass import AMASS_KEYS, UpAxis, is_amass, read_amass
+from gsavatar.motion.joint_names import read_joint_map
 from gsavatar.motion.resample import resample_motion
 from gsavatar.motion.retarget import motion_from_bvh_file
 from gsavatar.utils.io import read_npz
@@ -141,7 +144,8 @@ def _finish(pose, rr, rt, face, fps_in: float, rig: Rig, target_fps: float | Non
 
 
 def load_driving_motion(source: str | Path, rig: Rig, target_fps: float | None = None, *, fps: float | None = None,
-                        start: int = 0, count: int | None = None, split: str | None = None) -> DrivingMotion:
+                        start: int = 0, count: int | None = None, split: str | None = None,
+                        joint_map: str | Path | None = None, amass_up: UpAxis = "z") -> DrivingMotion:
     """Load a driving motion for an avatar with rig ``rig`` and resample it to ``target_fps``.
 
     source: a ``motion.npz`` (fps from ``fps``, an ``fps`` array in the npz, a sidecar
@@ -151,6 +155,10 @@ def load_driving_motion(source: str | Path, rig: Rig, target_fps: float | None =
     target_fps: the rate the predictor was trained at (None: keep the source rate).
     start, count: source frames ``[start, start + count)`` (BVH: ``count`` output frames).
     split: capture sources only: use this split's frames (must be consecutive), e.g. ``test``.
+    joint_map: BVH sources: a JSON file ``{"<rig joint>": "<BVH joint>" | null}`` overriding the name matching
+        (:func:`gsavatar.motion.joint_names.read_joint_map`).
+    amass_up: AMASS sources (an npz with ``poses`` [F, 165] and ``trans``): the file's up axis (``z``: AMASS's,
+        turned to our Y up; ``y``: as it is). Its frame rate: ``mocap_frame_rate``, else as for a motion.npz.
     """
     src = Path(source)
     if not src.exists():
@@ -159,6 +167,8 @@ def load_driving_motion(source: str | Path, rig: Rig, target_fps: float | None =
         raise ValueError(f"target_fps must be a plausible frame rate: {fps_problem(target_fps)}")
     if split is not None and not src.is_dir():
         raise ValueError(f"split={split!r} needs a capture directory as source, got {src}")
+    if joint_map is not None and src.suffix.lower() != ".bvh":
+        raise ValueError(f"joint_map ({joint_map}) applies to BVH motions only, got {src}")
     if src.is_dir():
         if not (src / "capture.json").exists():
             raise SchemaError(src / "capture.json", "", "not a capture directory (capture.json missing)")
@@ -180,12 +190,23 @@ def load_driving_motion(source: str | Path, rig: Rig, target_fps: float | None =
         return _finish(m.pose[frames], m.root_rotation[frames], m.root_translation[frames], face, fps_in, rig,
                        target_fps, src, cap, frames, fps_from=(src / "capture.json", "fps"))
     if src.suffix.lower() == ".bvh":
-        m = motion_from_bvh_file(src, rig, fps_out=target_fps, start=start, count=count)
+        names = None if joint_map is None else read_joint_map(joint_map)
+        m = motion_from_bvh_file(src, rig, fps_out=target_fps, start=start, count=count, name_map=names,
+                                 name_map_file=joint_map or "name_map")
         validate_arrays(src, {"pose": m.pose, "root_rotation": m.root_rotation, "root_translation": m.root_translation},
                         rig.pose_dim)
         return DrivingMotion(m.pose, m.root_rotation, m.root_translation, None, float(m.fps), None, str(src), float(m.fps))
     if src.suffix.lower() == ".npz":
-        z = read_npz(src, keys=MOTION_KEYS)
+        z = read_npz(src, keys=MOTION_KEYS + AMASS_KEYS)
+        if is_amass(z):
+            a = read_amass(src, rig, amass_up, z)
+            if fps is None and a.fps is not None:  # fps= (--motion-fps) wins over the file's own rate
+                fps_in, *fps_from = a.fps, src, a.fps_field
+            else:
+                fps_in, *fps_from = _npz_fps(src, {}, fps)
+            sl = _select(len(a.pose), start, count, src)
+            return _finish(a.pose[sl], a.root_rotation[sl], a.root_translation[sl], None, fps_in, rig, target_fps, src,
+                           fps_from=tuple(fps_from))
         arrays = {k: z.get(k) for k in MOTION_KEYS if k != "fps"}
         validate_arrays(src, arrays, rig.pose_dim)
         fps_in, *fps_from = _npz_fps(src, z, fps)

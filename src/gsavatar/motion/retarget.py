@@ -1,23 +1,33 @@
-"""Retarget BVH motion capture (e.g. CMU) onto a gsavatar :class:`Rig` (e.g. the Anny
-``cmu_mb`` body from :mod:`gsavatar.synth.body`). Used by the synthetic captures and by driving.
+"""Retarget BVH motion capture onto any gsavatar :class:`Rig`: the Anny ``cmu_mb`` body of the synthetic
+captures (euler ``rz, ry, rx``), an imported SMPL-X body (``axis_angle``), rigs with euler axes about any axes.
+Used by the synthetic captures and by driving.
+
+Joint matching (:mod:`gsavatar.motion.joint_names`): rig and BVH names are read with their detected
+conventions (CMU, Biovision/MotionBuilder, Mixamo, SMPL-X) and matched by canonical name; ``name_map`` (rig
+joint -> BVH joint or None, e.g. the user's ``--joint-map`` file) overrides the rig joints it lists.
 
 Method (per frame, rotations as 3x3 matrices)::
 
     G_bvh_j            BVH global rotation of joint j (standard BVH FK, rest = all channels 0)
     C                  BVH axes -> our axes (identity for CMU: both are Y up, facing +Z, left +X)
-    A_j                rest alignment: maps our rest bone directions of j (towards its
-                       children) onto the BVH rest bone directions (minimal rotation for one
-                       child, Kabsch for several; leaves inherit their parent's A)
+    A_j                rest alignment: maps our rest bone directions of j (towards its matched
+                       descendants) onto the BVH rest bone directions (minimal rotation for one
+                       bone, Kabsch for several; leaves inherit their parent's A)
     G_j = C G_bvh_j C^T A_j          our global rotation
-    L_j = G_parent(j)^T G_j          our local rotation -> euler params (R = Rz Ry Rx)
+    L_j = G_parent(j)^T G_j          our local rotation -> the rig's parameters (:mod:`~gsavatar.motion.rig_pose`)
 
-so every bone of our rig points where the corresponding BVH bone points, whatever the
-two rest poses are (CMU: T-pose; Anny: A-pose). Joints of our rig without a BVH
-counterpart get identity local rotations. The root's ``G`` becomes ``root_rotation``
-(axis-angle); the root position is the BVH root position times a scale (ratio of leg
-lengths, thigh + shin) mapped by ``C``, shifted vertically so the lowest foot joint over
-the clip matches our rest foot height (feet stay on the ground), and horizontally so
-the first output frame starts at x = z = 0 (``center_xz``).
+so every bone of our rig points where the corresponding BVH bone points, whatever the two rest poses are
+(CMU: T-pose; Anny: A-pose), and whatever the rig's parameters are: world-space bone rotations relative to
+each skeleton's rest pose are transferred, never euler angles, so rigs that differ only in their parameter
+axes get the same posed surface. Rig joints without a BVH counterpart get identity local rotations (they
+follow their parent rigidly); they are listed in an :class:`UndrivenJointsWarning`, and when more than
+``max_undriven`` of the rig's body joints (joints with parameters that are not hand or face joints) are
+undriven the retargeting is refused (SchemaError naming the BVH): the names did not match.
+
+The root's ``G`` becomes ``root_rotation`` (axis-angle); the root position is the BVH root position times a
+scale (ratio of leg lengths, thigh + shin) mapped by ``C``, shifted vertically so the lowest foot joint over
+the clip matches our rest foot height (feet stay on the ground), and horizontally so the first output frame
+starts at x = z = 0 (``center_xz``).
 
 Frame-rate change (:mod:`gsavatar.motion.resample`): local rotations are resampled by
 quaternion slerp, the root translation linearly; output frame k is at time ``k / fps_out``
@@ -37,12 +47,25 @@ from scipy.spatial.transform import Rotation
 from gsavatar.data_schema.limits import check_resampled_frames
 from gsavatar.data_schema.rig import Rig
 from gsavatar.motion.bvh import BvhMotion, bvh_global_transforms, bvh_rest_positions, read_bvh
+from gsavatar.motion.joint_names import is_extremity, match_joints
 from gsavatar.motion.resample import lerp_frames, resample_times, slerp_matrices
+from gsavatar.motion.rig_pose import pose_from_local_rotations
+from gsavatar.utils.errors import SchemaError
 
 CMU_NAME_MAP: dict[str, str] = {"LeftHandFinger1": "LFingers", "RightHandFinger1": "RFingers"}
-"""Our (Anny cmu_mb) joint name -> CMU BVH joint name, where they differ."""
+"""Our (Anny cmu_mb) joint name -> CMU BVH joint name, where they differ (the ``cmu`` convention of
+:mod:`gsavatar.motion.joint_names` knows both, so matching needs no map)."""
 
-_FOOT_JOINTS = ("LeftFoot", "RightFoot", "LeftToeBase", "RightToeBase")
+MAX_UNDRIVEN = 0.5
+"""Largest fraction of a rig's body joints (joints with parameters, hand and face joints excepted) that may be
+driven by no motion joint; more is refused (the names did not match: pass a joint map)."""
+
+_FOOT_JOINTS = ("left_ankle", "right_ankle", "left_foot", "right_foot")
+"""Canonical names of the joints whose lowest point over a clip is put on our rest foot height."""
+
+
+class UndrivenJointsWarning(UserWarning):
+    """Rig joints that no motion joint drives (they keep their rest rotation relative to their parent)."""
 
 
 class RetargetedMotion(NamedTuple):
@@ -54,6 +77,10 @@ class RetargetedMotion(NamedTuple):
     """Root translation, metres.  # [F, 3] float32"""
     fps: float
     """Frames per second of the output."""
+    undriven: tuple[str, ...] = ()
+    """Rig joints with pose parameters that no BVH joint drives (identity local rotation)."""
+    matched: tuple[tuple[str, str], ...] = ()
+    """(rig joint, BVH joint) of every matched pair, in rig order."""
 
 
 # --------------------------------------------------------------------------------------
@@ -100,15 +127,17 @@ def _rig_children(rig: Rig) -> list[list[int]]:
 
 
 def _bone_pairs(j: int, children: list[list[int]], to_bvh: dict[int, int], heads: np.ndarray, bvh_rest: np.ndarray, eps_o: float, eps_b: float):
-    """(our rest vector, BVH rest vector) pairs from joint j towards its (mapped) descendants.
+    """(our rest vector, BVH rest vector) pairs from joint j towards its nearest matched descendants.
 
-    A child at (near) zero distance on either side is skipped in favour of its children.
+    An unmatched child (e.g. SMPL-X's spine2 under a Biovision skeleton's Ab -> Chest) and a child at (near)
+    zero distance on either side are skipped in favour of their children.
     """
     pairs = []
     stack = list(children[j])
     while stack:
         c = stack.pop(0)
         if c not in to_bvh:
+            stack.extend(children[c])
             continue
         vo = heads[c] - heads[j]
         vb = bvh_rest[to_bvh[c]] - bvh_rest[to_bvh[j]]
@@ -121,8 +150,8 @@ def _bone_pairs(j: int, children: list[list[int]], to_bvh: dict[int, int], heads
 
 def _leg_length(points: np.ndarray, idx: dict[str, int]) -> float | None:
     total, n = 0.0, 0
-    for side in ("Left", "Right"):
-        chain = [f"{side}UpLeg", f"{side}Leg", f"{side}Foot"]
+    for side in ("left", "right"):
+        chain = [f"{side}_hip", f"{side}_knee", f"{side}_ankle"]  # canonical: thigh + shin
         if all(c in idx for c in chain):
             p = points[[idx[c] for c in chain]]
             total += np.linalg.norm(p[1] - p[0]) + np.linalg.norm(p[2] - p[1])
@@ -130,33 +159,28 @@ def _leg_length(points: np.ndarray, idx: dict[str, int]) -> float | None:
     return total / n if n else None
 
 
-def _euler_zyx_continuous(R: np.ndarray) -> np.ndarray:
-    """R = Rz(a) Ry(b) Rx(c) -> (a, b, c) per frame, continuous over time. [F,J,3,3] -> [F,J,3]
-
-    Of the two equivalent solutions (and their 2 pi shifts) each frame takes the one
-    closest to the previous frame, so angles do not jump by 2 pi at +-180 degrees.
-    """
-    F, J = R.shape[:2]
-    e = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_euler("ZYX").reshape(F, J, 3)  # intrinsic
-    alt = np.stack([e[..., 0] + math.pi, math.pi - e[..., 1], e[..., 2] + math.pi], -1)
-    alt = (alt + math.pi) % (2 * math.pi) - math.pi
-    out = np.empty_like(e)
-    out[0] = e[0]
-    two_pi = 2 * math.pi
-    for f in range(1, F):
-        prev = out[f - 1]
-        best = None
-        for cand in (e[f], alt[f]):
-            c = cand + two_pi * np.round((prev - cand) / two_pi)  # nearest 2 pi shift per angle
-            d = np.abs(c - prev).sum(-1)
-            if best is None:
-                best, bd = c, d
-            else:
-                take = d < bd - 1e-9
-                best = np.where(take[:, None], c, best)
-                bd = np.where(take, d, bd)
-        out[f] = best
-    return out
+def _check_undriven(rig: Rig, bvh: BvhMotion, to_bvh: dict[int, int], canonical: tuple[str, ...], root: int,
+                    max_undriven: float, conventions: tuple[str | None, str | None]) -> tuple[str, ...]:
+    """Warn about rig joints with parameters that no BVH joint drives; SchemaError(BVH) when more than
+    ``max_undriven`` of the body joints among them are undriven. -> the undriven joint names."""
+    with_params = sorted({rig.joint_index(p.joint) for p in rig.params} - {root})
+    undriven = [j for j in with_params if j not in to_bvh]
+    names = tuple(rig.joints[j].name for j in undriven)
+    body = [j for j in with_params if not is_extremity(canonical[j])]
+    body_undriven = [rig.joints[j].name for j in body if j not in to_bvh]
+    where = (f"(rig names read as {conventions[0] or 'no known convention'}, BVH names as "
+             f"{conventions[1] or 'no known convention'}")
+    if body and len(body_undriven) > max_undriven * len(body):
+        raise SchemaError(bvh.path or "BVH", "joints",
+                          f"{len(body_undriven)} of the rig's {len(body)} body joints are driven by no BVH joint: "
+                          f"{body_undriven} {where}; BVH joints: {bvh.names}); map them with a joint map "
+                          "(--joint-map FILE, docs/import.md)")
+    if names:
+        extra = [n for n in names if n not in body_undriven]
+        warnings.warn(f"{bvh.path or 'BVH'}: {len(names)} of the rig's {len(with_params)} posed joints are driven by no "
+                      f"BVH joint and keep their rest rotation relative to their parent: body joints {body_undriven}, "
+                      f"hand/face joints {extra} {where})", UndrivenJointsWarning, stacklevel=3)
+    return names
 
 
 # --------------------------------------------------------------------------------------
@@ -169,47 +193,49 @@ def retarget_bvh(
     fps_out: float | None = None,
     frames: slice | None = None,
     *,
-    name_map: dict[str, str] | None = None,
+    name_map: dict[str, str | None] | None = None,
+    name_map_file: str | Path = "name_map",
     bvh_to_ours: np.ndarray | None = None,
     scale: float | None = None,
     center_xz: bool = True,
+    max_undriven: float = MAX_UNDRIVEN,
 ) -> RetargetedMotion:
     """Retarget ``bvh`` onto ``rig`` (see module docstring for the method).
 
     rest_heads: our rest joint positions [J, 3] (default ``rig.heads()``).
     fps_out: output frame rate (default: the BVH's); resampled by slerp/lerp.
     frames: source (BVH) frames to use, e.g. ``slice(0, 400)`` (default: all).
-    name_map: our joint name -> BVH joint name (or ``None``: no counterpart) where they
-        differ (default :data:`CMU_NAME_MAP`); other joints match by name.
+    name_map: our joint name -> BVH joint name (or ``None``: driven by nothing) for the rig joints it lists
+        (e.g. :func:`gsavatar.motion.joint_names.read_joint_map` of a user's file, named in errors by
+        ``name_map_file``); the others are matched by convention (:mod:`gsavatar.motion.joint_names`).
     bvh_to_ours: 3x3 rotation from BVH axes to ours (default identity: Y up, facing +Z).
     scale: metres per BVH unit (default: our leg length / BVH leg length).
     center_xz: move the horizontal root position of the first output frame to x = z = 0.
+    max_undriven: largest fraction of undriven body joints accepted (:data:`MAX_UNDRIVEN`; 1 accepts all).
     """
     heads = np.asarray(rig.heads() if rest_heads is None else rest_heads, dtype=np.float64)
     J = rig.num_joints
     if heads.shape != (J, 3):
         raise ValueError(f"rest_heads must be [{J}, 3], got {heads.shape}")
-    for p in rig.params:
-        if p.kind != "euler":
-            raise ValueError(f"retarget_bvh supports euler rigs only; {p.name} is {p.kind}")
     C = np.eye(3) if bvh_to_ours is None else np.asarray(bvh_to_ours, np.float64)
-    nm = dict(CMU_NAME_MAP if name_map is None else name_map)
-    bidx = {n: i for i, n in enumerate(bvh.names)}
-    to_bvh: dict[int, int] = {}
-    for j, jt in enumerate(rig.joints):
-        b = nm.get(jt.name, jt.name)  # None: deliberately unmapped
-        if b is not None and b in bidx:
-            to_bvh[j] = bidx[b]
+    match = match_joints([jt.name for jt in rig.joints], bvh.names, name_map, name_map_file)
+    to_bvh = match.rig_to_motion
+    canonical = match.rig_canonical
     parents = rig.parents()
     root = int(np.flatnonzero(parents < 0)[0])
+    if any(p.joint == rig.joints[root].name for p in rig.params):
+        raise ValueError("the root joint must have no pose params (its motion is root_rotation)")
     if root not in to_bvh:
-        raise ValueError(f"the rig root {rig.joints[root].name!r} has no BVH joint (BVH joints: {bvh.names})")
+        raise SchemaError(bvh.path or "BVH", "joints", f"the rig root {rig.joints[root].name!r} has no BVH joint "
+                          f"(BVH joints: {bvh.names}); map it with a joint map (--joint-map FILE)")
+    undriven = _check_undriven(rig, bvh, to_bvh, canonical, root, max_undriven,
+                               (match.rig_convention, match.motion_convention))
 
     # --- scale: ratio of leg lengths ----------------------------------------------------
     bvh_rest = bvh_rest_positions(bvh)
-    if scale is None:
-        ours_idx = {jt.name: j for j, jt in enumerate(rig.joints)}
-        bvh_named = {rig.joints[j].name: b for j, b in to_bvh.items()}
+    if scale is None:  # over matched legs only, by canonical name
+        ours_idx = {canonical[j]: j for j in to_bvh}
+        bvh_named = {canonical[j]: b for j, b in to_bvh.items()}
         lo = _leg_length(heads, ours_idx)
         lb = _leg_length(bvh_rest, bvh_named)
         if lo and lb:
@@ -257,7 +283,7 @@ def retarget_bvh(
     root_pos = scale * (Gb[:, to_bvh[root], :3, 3] @ C.T)  # [F, 3] metres, our axes
 
     # --- ground: lowest foot joint over the whole clip at our rest foot height -------------
-    feet = [j for j, jt in enumerate(rig.joints) if jt.name in _FOOT_JOINTS and j in to_bvh]
+    feet = [j for j in range(J) if canonical[j] in _FOOT_JOINTS and j in to_bvh]
     up = np.array([0.0, 1.0, 0.0])
     if feet:
         all_pos = bvh_global_transforms(bvh, None)[:, [to_bvh[j] for j in feet], :3, 3]  # whole clip
@@ -285,27 +311,11 @@ def retarget_bvh(
     if center_xz:
         root_pos = root_pos - np.array([root_pos[0, 0], 0.0, root_pos[0, 2]])
 
-    # --- pack --------------------------------------------------------------------------
-    eul = _euler_zyx_continuous(L)  # [F, J, 3] (rz, ry, rx)
-    col = {"rz": 0, "ry": 1, "rx": 2}
-    axis_of = {(0.0, 0.0, 1.0): "rz", (0.0, 1.0, 0.0): "ry", (1.0, 0.0, 0.0): "rx"}
-    pose = np.zeros((L.shape[0], rig.pose_dim))
-    per_joint: dict[int, list[str]] = {}
-    for i, p in enumerate(rig.params):
-        j = rig.joint_index(p.joint)
-        ax = axis_of.get(tuple(float(round(a, 6)) for a in p.axis))
-        if ax is None:
-            raise ValueError(f"{p.name}: retarget_bvh needs principal-axis euler params, got axis {p.axis}")
-        per_joint.setdefault(j, []).append(ax)
-        pose[:, i] = eul[:, j, col[ax]]
-    for j, axes in per_joint.items():
-        if axes != ["rz", "ry", "rx"]:
-            raise ValueError(f"joint {rig.joints[j].name}: params must be rz, ry, rx in that order, got {axes}")
-        if j == root:
-            raise ValueError("the root joint must have no pose params (its motion is root_rotation)")
-    missing = [rig.joints[j].name for j in range(J) if j != root and j not in per_joint]
-    if missing:
-        warnings.warn(f"joints without pose params keep their rest orientation: {missing}", stacklevel=2)
+    # --- pack ---------------------------------------------------------------------------
+    pose = pose_from_local_rotations(L, rig)
+    moving = [rig.joints[j].name for j in to_bvh if j != root and not any(p.joint == rig.joints[j].name for p in rig.params)]
+    if moving:
+        warnings.warn(f"joints without pose params keep their rest orientation: {moving}", stacklevel=2)
     root_rot = Rotation.from_matrix(L[:, root]).as_rotvec()
     # translation t with world_root_head = head_root + t
     root_trans = root_pos - heads[root]
@@ -314,6 +324,8 @@ def retarget_bvh(
         root_rotation=root_rot.astype(np.float32),
         root_translation=root_trans.astype(np.float32),
         fps=fps,
+        undriven=undriven,
+        matched=tuple((rig.joints[j].name, bvh.names[b]) for j, b in sorted(to_bvh.items())),
     )
 
 
@@ -328,7 +340,8 @@ def motion_from_bvh_file(
     """Read a BVH file and retarget ``count`` OUTPUT frames starting at source frame ``start``.
 
     ``count=None`` takes everything to the end of the file. Extra keyword arguments go to
-    :func:`retarget_bvh` (``name_map``, ``bvh_to_ours``, ``scale``, ``center_xz``).
+    :func:`retarget_bvh` (``name_map``, ``name_map_file``, ``bvh_to_ours``, ``scale``, ``center_xz``,
+    ``max_undriven``).
     """
     bvh = read_bvh(path)
     if not 0 <= start < bvh.num_frames:
@@ -344,5 +357,6 @@ def motion_from_bvh_file(
         check_resampled_frames(stop - start, _snap_fps(bvh.fps), float(fps_out), path, "MOTION")
     m = retarget_bvh(bvh, rig, None, fps_out, slice(start, stop), **kwargs)
     if count is not None and len(m.pose) > count:
-        m = RetargetedMotion(m.pose[:count], m.root_rotation[:count], m.root_translation[:count], m.fps)
+        m = m._replace(pose=m.pose[:count], root_rotation=m.root_rotation[:count],
+                       root_translation=m.root_translation[:count])
     return m
