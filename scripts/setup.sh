@@ -4,6 +4,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 APT_PKGS="libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri assimp-testmodels"
+APT_PKGS="$APT_PKGS chromium"  # headless browser test of avatar-drive --view (tests/drive/test_viewer.py)
 missing=""
 for p in $APT_PKGS; do dpkg -s "$p" >/dev/null 2>&1 || missing="$missing $p"; done
 if [ -n "$missing" ]; then

@@ -4,20 +4,32 @@
     avatar-drive --run runs/ours --motion cap --split test --mode reinit --out d     # paper's "re-init. 30"
     avatar-drive --run runs/ours --motion 01_01.bvh --cameras orbit --out d          # CMU mocap, orbit cameras
     avatar-drive --run runs/ours --motion m.npz --motion-fps 60 --out d              # resampled to training fps
+    avatar-drive --run runs/ours --motion cap --view                                 # browser viewer, 127.0.0.1:8080
+    avatar-drive --run runs/ours --motion cap --export-ply plys --up-axis -y        # 3DGS PLY per frame
+    avatar-drive --run runs/imported --motion Boxing_Toes.bvh --cameras orbit --out d # any BVH names, any rig
+    avatar-drive --run runs/imported --motion m.bvh --joint-map map.json --out d     # {"rig joint": "BVH joint"}
+    avatar-drive --run runs/imported --motion amass.npz --cameras orbit --out d      # AMASS SMPL-X (poses, trans)
 
 Outputs in OUT: ``frames/{cam}/{t:06d}.png``, ``drive.mp4`` (cameras side by side),
 ``latents.npz`` (latents [T, A, L] + the resampled motion), ``drive.json`` (summary);
 with ground truth (a capture as motion, capture cameras) also ``metrics.json`` and
 ``stability.png`` (the paper's figure 7); ``--ramp-up N`` adds ``ramp_up.json/png``.
+``--view`` serves the driven avatar to a browser instead (:mod:`gsavatar.drive.viewer`; writes nothing,
+``--out`` not needed); ``--export-ply DIR`` writes ``DIR/{t:06d}.ply`` (standard 3DGS, posed), with
+or without ``--out``.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
+from typing import Literal
 
 import numpy as np
 import torch
@@ -39,11 +51,17 @@ class DriveArgs(DriveConfig):
     run: Path
     """Run directory of ``avatar-train avatar`` (its predictor in RUN/predictor when trained)."""
     motion: Path
-    """Driving motion: a motion.npz, a capture directory (ground truth -> metrics) or a .bvh file."""
-    out: Path
-    """Output directory."""
+    """Driving motion: a motion.npz, a capture directory (ground truth -> metrics), a .bvh file or an AMASS-style
+    SMPL-X .npz (poses [F,165], trans, mocap_frame_rate; SMPL-X rigs)."""
+    out: Path | None = None
+    """Output directory (required unless --view or --export-ply)."""
     motion_fps: float = 0.0
     """Frame rate of an npz motion (0: from an 'fps' array, a sidecar <name>.json or a capture.json beside it)."""
+    joint_map: Path | None = None
+    """BVH motions: JSON object {"<rig joint>": "<BVH joint>" or null} overriding the joint-name matching
+    (CMU, Biovision, Mixamo and SMPL-X names are matched without it; docs/import.md)."""
+    amass_up: Literal["z", "y"] = "z"
+    """AMASS motions: the file's up axis (z: AMASS's own, turned to the avatar's Y up; y: taken as it is)."""
     split: str | None = None
     """Capture motions: drive with this split's frames (e.g. ``test``); default all frames."""
     start: int = 0
@@ -59,6 +77,20 @@ class DriveArgs(DriveConfig):
     force: bool = False
     """Write into a non-empty ``out`` that is not an avatar-drive output (refused otherwise, so a user's
     files are never overwritten). An earlier drive's folder is reused without it."""
+    view: bool = False
+    """Serve a browser viewer of the driven avatar (gsavatar.drive.viewer) instead of writing outputs."""
+    port: int = 8080
+    """--view: port of the page."""
+    host: str = "127.0.0.1"
+    """--view: interface to bind (default: this machine only)."""
+    start_paused: bool = False
+    """--view: open paused on the first frame."""
+    sh0_only: bool = False
+    """--view: colour from SH band 0 only (view independent)."""
+    export_ply: Path | None = None
+    """Write every driven frame's posed Gaussians as DIR/{t:06d}.ply (standard 3DGS layout)."""
+    up_axis: Literal["z", "-y", "y"] = "z"
+    """--export-ply: up axis of the files (``z``: ours; ``-y``: COLMAP/3DGS viewers such as SuperSplat)."""
 
     def config(self) -> DriveConfig:
         return DriveConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(DriveConfig)})
@@ -103,8 +135,14 @@ def drive(args: DriveArgs) -> dict:
     predictor = load_predictor_for(args.run) if args.ramp_up and loaded.net.avatar.latent_in else "auto"
     d = Driver(args.run, cfg, loaded=loaded, predictor=predictor)
     scene = d.scene
-    motion = load_driving_motion(args.motion, scene.capture.rig, d.fps, fps=args.motion_fps or None, start=args.start,
-                                 count=args.count or None, split=args.split)
+    with warnings.catch_warnings(record=True) as caught:  # e.g. rig joints no BVH joint drives: one line each
+        warnings.simplefilter("always")
+        motion = load_driving_motion(args.motion, scene.capture.rig, d.fps, fps=args.motion_fps or None,
+                                     start=args.start, count=args.count or None, split=args.split,
+                                     joint_map=args.joint_map, amass_up=args.amass_up)
+    motion_warnings = [str(w.message) for w in caught]
+    for w in motion_warnings:
+        print(f"warning: {w}", file=sys.stderr)
     if motion.face is not None and motion.face.shape[1] != d.face_dim:
         from gsavatar.data_schema import SchemaError
 
@@ -158,6 +196,7 @@ def drive(args: DriveArgs) -> dict:
         "source_fps": motion.source_fps, "resampled": abs(motion.fps - motion.source_fps) > 1e-9,
         "cameras": cams, "video": str(video), "video_fps": fps_video, "seconds": round(seconds, 3),
         "ground_truth": gt is not None, "render_change": summary["mean"].get("render_change"),
+        "motion_warnings": motion_warnings,
         "config": json.loads(json.dumps(dataclasses.asdict(cfg), default=str)),
     }
     if gt is not None:
@@ -185,6 +224,19 @@ def main(argv: list[str] | None = None) -> int:
         args = tyro.cli(DriveArgs, args=argv, prog="avatar-drive", description=__doc__)
     except SystemExit as e:
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
+    if args.view:
+        from gsavatar.drive.viewer import serve_drive_args
+
+        return run_reporting_errors(lambda: serve_drive_args(args))
+    if args.export_ply is not None:
+        from gsavatar.drive.live import export_drive_plys
+
+        rc = run_reporting_errors(lambda: export_drive_plys(args))
+        if rc or args.out is None:
+            return rc
+    if args.out is None:
+        print("error: --out is required (unless --view or --export-ply)", file=sys.stderr)
+        return 2
     return run_reporting_errors(lambda: drive(args))
 
 

@@ -13,18 +13,32 @@ Binary little-endian, one ``vertex`` element with float32 properties, in order::
 
 This is what common splat viewers (SuperSplat, the INRIA SIBR viewer, antimatter15)
 open. :func:`read_ply` reads it back (activated values), for tests and tools.
+
+Up axis: our world is the capture's, Z up. 3DGS viewers expect the COLMAP convention, Y down
+(``-y`` up). ``up_axis`` (:data:`UP_AXES`) rotates the Gaussians rigidly before writing so the given
+axis points where our +Z did: positions, rotations (``q_R * q``) and the SH coefficients of every band
+(:func:`sh_rotation`), so the colour seen from a rotated camera is unchanged.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from gsavatar.render.sh import sh_bases
 from gsavatar.utils.io import atomic_path
+
+UpAxis = Literal["z", "-y", "y"]
+UP_AXES: dict[str, np.ndarray] = {
+    "z": np.eye(3),  # ours (the capture's world): unchanged
+    "-y": np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]),  # +90 deg about x: +z -> -y (COLMAP / 3DGS, Y down)
+    "y": np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]),  # -90 deg about x: +z -> +y (Y-up viewers)
+}
+"""Up axis of the written file -> rotation [3, 3] applied to our Z-up world (``R @ [0, 0, 1]`` = that axis)."""
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
@@ -55,6 +69,47 @@ def ply_property_names(num_sh: int) -> list[str]:
             "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
 
 
+def up_axis_rotation(up_axis: str) -> np.ndarray:
+    """Rotation [3, 3] taking our Z-up world to one whose up is ``up_axis`` (see :data:`UP_AXES`)."""
+    if up_axis not in UP_AXES:
+        raise ValueError(f"up_axis must be one of {'/'.join(UP_AXES)}, got {up_axis!r}")
+    return UP_AXES[up_axis].copy()
+
+
+def sh_rotation(R: np.ndarray, num_sh: int) -> np.ndarray:
+    """Matrix D [K, K] with ``sh' = D @ sh`` (per colour channel) for Gaussians rotated by ``R`` [3, 3]:
+    ``sum_k Y_k(d) sh'_k = sum_k Y_k(R^T d) sh_k`` for every direction d (block diagonal per band; fitted
+    on 64 directions, exact up to rounding since each band is closed under rotation)."""
+    deg = round(np.sqrt(num_sh)) - 1
+    if (deg + 1) ** 2 != num_sh or not 0 <= deg <= 3:
+        raise ValueError(f"num_sh must be (d+1)^2 with d in [0, 3], got {num_sh}")
+    g = np.random.default_rng(0).normal(size=(64, 3))
+    d = torch.as_tensor(g / np.linalg.norm(g, axis=1, keepdims=True))
+    Rt = torch.as_tensor(np.asarray(R, np.float64))
+    b_new = sh_bases(deg, d).numpy()  # [M, K]
+    b_old = sh_bases(deg, d @ Rt).numpy()  # rows: Y(R^T d)
+    D = np.linalg.lstsq(b_new, b_old, rcond=None)[0]
+    D[np.abs(D) < 1e-12] = 0.0
+    return D
+
+
+def rotate_gaussians(R: np.ndarray, means: np.ndarray, quats: np.ndarray, sh: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rotate Gaussians rigidly about the origin by ``R`` [3, 3].
+
+    means [N, 3], quats [N, 4] wxyz, sh [N, K, 3] -> (R means, q_R * q, D sh) as float64
+    """
+    from scipy.spatial.transform import Rotation
+
+    m, q, c = (np.asarray(a, np.float64) for a in (means, quats, sh))
+    rw = Rotation.from_matrix(R).as_quat()  # xyzw
+    w0, v0 = rw[3], rw[:3]
+    w1, v1 = q[:, :1], q[:, 1:]
+    qn = np.concatenate([w0 * w1 - v1 @ v0[:, None], w0 * v1 + w1 * v0[None] + np.cross(v0[None], v1)], axis=1)
+    D = sh_rotation(R, c.shape[1])
+    return m @ np.asarray(R, np.float64).T, qn, np.einsum("kj,njc->nkc", D, c)
+
+
 def _np(x: Tensor | np.ndarray) -> np.ndarray:
     return x.detach().cpu().double().numpy() if isinstance(x, Tensor) else np.asarray(x, np.float64)
 
@@ -66,6 +121,7 @@ def write_ply(
     scales: Tensor | np.ndarray,
     opacities: Tensor | np.ndarray,
     sh: Tensor | np.ndarray,
+    up_axis: UpAxis = "z",
 ) -> None:
     """Write one set of Gaussians (atomic).
 
@@ -75,7 +131,9 @@ def write_ply(
         scales: [N, 3] activated scales > 0, metres
         opacities: [N] activated opacities in (0, 1)
         sh: [N, K, 3] SH coefficients (K = (degree+1)^2), [:, 0] = DC
+        up_axis: up axis of the file (``z``: ours, unchanged; ``-y``: 3DGS / COLMAP viewers), :data:`UP_AXES`
     """
+    R = up_axis_rotation(up_axis)
     m, q, s, o, c = map(_np, (means, quats, scales, opacities, sh))
     N = m.shape[0]
     for name, a, shape in (("means", m, (N, 3)), ("quats", q, (N, 4)), ("scales", s, (N, 3)), ("opacities", o, (N,))):
@@ -85,6 +143,8 @@ def write_ply(
         raise ValueError(f"sh must be [{N}, (d+1)^2, 3], got {list(c.shape)}")
     K = c.shape[1]
     q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
+    if up_axis != "z":
+        m, q, c = rotate_gaussians(R, m, q, c)
     o = np.clip(o, 1e-7, 1 - 1e-7)
     cols = [
         m, np.zeros((N, 3)), c[:, 0, :],
@@ -101,9 +161,10 @@ def write_ply(
             f.write(np.ascontiguousarray(data).tobytes())
 
 
-def export_frame_ply(path: str | Path, out, frame: int = 0) -> None:
+def export_frame_ply(path: str | Path, out, frame: int = 0, up_axis: UpAxis = "z") -> None:
     """Write frame ``frame`` of an :class:`~gsavatar.models.avatar.AvatarOutput` (posed)."""
-    write_ply(path, out.means[frame], out.quats[frame], out.scales[frame], out.opacities[frame], out.sh[frame])
+    write_ply(path, out.means[frame], out.quats[frame], out.scales[frame], out.opacities[frame], out.sh[frame],
+              up_axis=up_axis)
 
 
 def read_ply(path: str | Path) -> PlyGaussians:

@@ -3,7 +3,8 @@
     avatar-train avatar --dataset ds --out runs/tiny --preset tiny
     avatar-train avatar --dataset ds --out runs/mmlps --variant mmlps_dagger     # the baseline
     avatar-train eval --run runs/tiny
-    avatar-train export --run runs/tiny --frame 0 --out frame0.ply
+    avatar-train export --run runs/tiny --frame 0 --out frame0.ply --up-axis -y   # -y: 3DGS viewers
+    avatar-train view --run runs/tiny               # the avatar at rest in the browser viewer
     avatar-train predictor --run runs/tiny          # the autoregressive appearance predictor
 """
 
@@ -13,6 +14,7 @@ import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import torch
 import tyro
@@ -68,14 +70,54 @@ class Export:
     """Capture frame whose pose (and projected texture) is used."""
     out: Path = Path("avatar.ply")
     """Output PLY path."""
+    up_axis: Literal["z", "-y", "y"] = "z"
+    """Up axis of the file: ``z`` (ours, the capture's world) or ``-y`` (COLMAP / 3DGS viewers: SuperSplat,
+    SIBR; positions, rotations and SH rotated together, docs/drive.md)."""
 
     def run_(self) -> None:
-        from gsavatar.train.runs import export_ply
+        from gsavatar.models.ply import export_frame_ply
+        from gsavatar.runs.config import model_config
+        from gsavatar.runs.load import load_run
+        from gsavatar.train.runs import posed_output
         from gsavatar.utils.paths import add_output_root
 
         add_output_root(Path(self.out).parent)  # the one file named, nothing beside it elsewhere
-        export_ply(self.run, self.frame, self.out)
+        net, scene, cfg, _ = load_run(self.run)
+        if not 0 <= self.frame < scene.capture.num_frames:
+            raise ValueError(f"frame must be in [0, {scene.capture.num_frames}), got {self.frame}")
+        export_frame_ply(self.out, posed_output(net, scene, self.frame, model_config(cfg).sh_degree), 0, self.up_axis)
         print(f"wrote {self.out}")
+
+
+@dataclass
+class View:
+    """Open the browser viewer (viser, http://127.0.0.1:PORT) of a trained run: the avatar at rest, or driven
+    by ``--motion``. Runs ``python -m gsavatar.drive.viewer`` (the viewer lives in the drive layer)."""
+
+    run: Path
+    """Run directory."""
+    motion: Path | None = None
+    """Driving motion (capture directory, motion.npz, .bvh); default: the rest pose, mean latent."""
+    port: int = 8080
+    """Port of the page."""
+    host: str = "127.0.0.1"
+    """Interface to bind (default: this machine only)."""
+    start_paused: bool = False
+    """Open paused."""
+    sh0_only: bool = False
+    """Colour from SH band 0 only (view independent)."""
+
+    def run_(self) -> None:
+        import subprocess
+        import sys
+
+        cmd = [sys.executable, "-m", "gsavatar.drive.viewer", "--run", str(self.run), "--port", str(self.port),
+               "--host", self.host]
+        cmd += ["--motion", str(self.motion)] if self.motion is not None else []
+        cmd += ["--start-paused"] * self.start_paused + ["--sh0-only"] * self.sh0_only
+        rc = subprocess.call(cmd)
+        if rc:
+            raise SystemExit(rc)
 
 
 @dataclass
@@ -102,7 +144,8 @@ class Turntable:
 
 
 def main(argv: list[str] | None = None) -> int:
-    cmd = tyro.extras.subcommand_cli_from_dict({"avatar": Avatar, "eval": Eval, "export": Export, "turntable": Turntable, "predictor": Predictor},
+    cmd = tyro.extras.subcommand_cli_from_dict({"avatar": Avatar, "eval": Eval, "export": Export, "turntable": Turntable, "predictor": Predictor,
+                                                "view": View},
                                                prog="avatar-train", description=__doc__, args=argv)
     try:
         return run_reporting_errors(cmd.run if isinstance(cmd, Avatar) else cmd.run_)
