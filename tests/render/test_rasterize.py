@@ -198,10 +198,17 @@ CASES = {
 }
 
 
+COMPOSITORS = ["numba", "dense"]  # the compiled per-pixel loops and the batched torch ops
+
+
+@pytest.mark.parametrize("compositor", COMPOSITORS)
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
 @pytest.mark.parametrize("case", list(CASES.values()), ids=list(CASES))
-def test_matches_dense_reference(dtype, case):
+def test_matches_dense_reference(dtype, case, compositor):
     n, width, height, seed, opaque, n_feat, kwargs = case
+    kwargs = dict(kwargs, compositor=compositor)
+    if compositor == "numba":
+        kwargs.pop("max_candidates", None)
     tol = TOLERANCES[dtype]
     scene = random_scene(n, width, height, dtype, seed, opaque)
     g = torch.Generator().manual_seed(seed + 100)
@@ -228,11 +235,13 @@ def test_matches_dense_reference(dtype, case):
         assert err <= tol["grad_rel"] * scale, f"{name}: max err {err:.3g} vs scale {scale:.3g}"
 
 
-def test_cached_and_recomputed_backward_agree():
-    # The first backward reuses the forward's cached batches (and consumes them);
-    # a second one over the retained graph recomputes every batch.
+@pytest.mark.parametrize("compositor", COMPOSITORS)
+def test_cached_and_recomputed_backward_agree(compositor):
+    # dense: the first backward reuses the forward's cached batches (and consumes them);
+    # a second one over the retained graph recomputes every batch. numba: a second backward
+    # over the retained graph gives the same gradients.
     scene = with_grad(random_scene(150, 33, 30, torch.float64, seed=8, opaque=True))
-    out = render(scene, 33, 30, max_candidates=2048)
+    out = render(scene, 33, 30, max_candidates=2048, compositor=compositor)
     loss = out.colors.square().sum() + out.alphas.sum()
     params = [scene[k] for k in GRAD_NAMES]
     first = torch.autograd.grad(loss, params, retain_graph=True)
@@ -331,11 +340,12 @@ def _assert_finite_render_and_grads(scene, width, height, **kwargs):
     return out
 
 
+@pytest.mark.parametrize("compositor", COMPOSITORS)
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
 @pytest.mark.parametrize(
     "kind", ["needle", "flat", "tiny", "huge", "zero_quat", "behind", "at_camera"]
 )
-def test_degenerate_inputs_stay_finite(kind, dtype):
+def test_degenerate_inputs_stay_finite(kind, dtype, compositor):
     width, height = 24, 20
     scene = random_scene(40, width, height, dtype, seed=11)
     n = scene["means"].shape[0]
@@ -354,17 +364,18 @@ def test_degenerate_inputs_stay_finite(kind, dtype):
     elif kind == "at_camera":
         cam_pos = -(scene["viewmats"][0, :3, :3].T @ scene["viewmats"][0, :3, 3])
         scene["means"][::3] = cam_pos + 1e-4 * torch.randn(3, dtype=dtype)
-    out = _assert_finite_render_and_grads(scene, width, height)
+    out = _assert_finite_render_and_grads(scene, width, height, compositor=compositor)
     assert (out.alphas >= 0).all() and (out.alphas <= 1).all()
 
 
-def test_empty_and_fully_culled_scenes_render_background():
+@pytest.mark.parametrize("compositor", COMPOSITORS)
+def test_empty_and_fully_culled_scenes_render_background(compositor):
     width, height = 16, 12
     scene = random_scene(10, width, height, torch.float32, seed=2)
     empty = {k: (v[:0] if k not in ("viewmats", "Ks", "backgrounds") else v) for k, v in scene.items()}
     for sc in (empty, dict(scene, means=scene["means"] * 0 + scene["viewmats"][0, 2, :3] * -10.0)):
         sc = dict(sc, viewmats=sc["viewmats"][:1], Ks=sc["Ks"][:1], backgrounds=sc["backgrounds"][:1])
-        out = _assert_finite_render_and_grads(sc, width, height)
+        out = _assert_finite_render_and_grads(sc, width, height, compositor=compositor)
         torch.testing.assert_close(out.colors, sc["backgrounds"][:, None, None].expand_as(out.colors))
         assert (out.alphas == 0).all()
 

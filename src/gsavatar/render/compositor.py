@@ -33,6 +33,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from . import compositor_numba
 from .projection import ALPHA_THRESHOLD
 
 MAX_ALPHA = 0.999
@@ -59,7 +60,7 @@ class CompositeStats(NamedTuple):
     """Work counters of one compositing call (python ints, for logs/benchmarks)."""
 
     n_tile_pairs: int  # (tile, instance) intersections
-    n_candidates: int  # padded (pixel, instance) entries evaluated in the forward
+    n_candidates: int  # (pixel, instance) entries evaluated in the forward (dense: padded; numba: walked)
     n_contributing: int  # pairs that passed the 1/255 and T thresholds
     n_batches: int  # tile batches (Python loop iterations) in the forward
 
@@ -393,10 +394,11 @@ def composite(
     n_cameras: int,
     width: int,
     height: int,
-    tile_size: int = 4,
+    tile_size: int | None = None,
     max_candidates: int = 1 << 19,
     cache_candidates: int = 1 << 24,
     stats_out: list | None = None,
+    method: str = "auto",
 ) -> tuple[Tensor, Tensor]:
     """Alpha-composite projected Gaussian instances into C images (differentiable).
 
@@ -410,17 +412,29 @@ def composite(
         camera_ids: Tensor  # [V] int64 image each instance belongs to
         n_cameras: number of images C
         width, height: image size in pixels
-        tile_size: tile edge in pixels (4 is the CPU sweet spot, see docs/render.md)
-        max_candidates: bound on padded (pixel, Gaussian) entries evaluated at once
-        cache_candidates: forward batches up to this many entries in total are kept
+        tile_size: tile edge in pixels; None = the method's own (dense: 4, the sweet spot of the
+            batched matmuls, see docs/render.md; numba: 16, gsplat's)
+        max_candidates: dense method: bound on padded (pixel, Gaussian) entries evaluated at once
+        cache_candidates: dense method: forward batches up to this many entries in total are kept
             for backward (4 buffers of this size, 256 MB in float32 by default);
             the rest is recomputed in backward
         stats_out: if a list is given, a CompositeStats is appended to it
+        method: "numba" (compiled per-pixel loops, ``compositor_numba.py``), "dense" (batched torch
+            ops, this module; the oracle) or "auto" (numba when importable and the tensors are on
+            the CPU, else dense)
 
     Returns:
         colors: Tensor  # [C, H, W, D] accumulated features (no background)
         alphas: Tensor  # [C, H, W, 1] 1 - final transmittance
     """
+    if method not in ("auto", "numba", "dense"):
+        raise ValueError(f"method must be 'auto', 'numba' or 'dense', got {method!r}")
+    if method == "auto":
+        method = "numba" if compositor_numba.available() and means2d.device.type == "cpu" else "dense"
+    if method == "numba" and not compositor_numba.available():
+        raise RuntimeError("method='numba' needs the numba package (pip install numba)")
+    if tile_size is None:
+        tile_size = compositor_numba.DEFAULT_TILE_SIZE if method == "numba" else 4
     n_ch = colors.shape[-1]
     with torch.no_grad():
         order = torch.argsort(depths.detach(), stable=True)
@@ -431,6 +445,19 @@ def composite(
         # Lists refer to the caller's instance indices; no need to permute params.
         bins = bins._replace(instance_lists=order.index_select(0, bins.instance_lists))
     params = torch.cat([means2d, conics, opacities[:, None]], dim=1)  # [V, 6]
+    if method == "numba":
+        counts: list = []
+        out_color, out_alpha = compositor_numba.CompositeNumba.apply(
+            params.index_select(0, bins.instance_lists), colors.index_select(0, bins.instance_lists),
+            bins.tile_ids, bins.list_offsets, bins.list_counts, width, height, n_cameras, tile_size, counts,
+        )
+        if stats_out is not None:
+            pairs, walked, used = counts[0]
+            stats_out.append(CompositeStats(pairs, walked, used, 1))
+        return (
+            out_color.reshape(n_cameras, height, width, n_ch),
+            out_alpha.reshape(n_cameras, height, width, 1),
+        )
     if not (torch.is_grad_enabled() and (params.requires_grad or colors.requires_grad)):
         cache_candidates = 0  # no backward will come: do not hold buffers
     out_color, out_alpha = _Composite.apply(

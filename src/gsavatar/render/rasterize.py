@@ -110,8 +110,9 @@ def rasterize(
     near_plane: float = 0.01,
     far_plane: float = 1e10,
     eps2d: float = 0.3,
-    tile_size: int = 4,
+    tile_size: int | None = None,
     max_candidates: int = 1 << 19,
+    compositor: str = "auto",
 ) -> RenderOutput:
     """Render Gaussians with gsplat's classic 3DGS rules.
 
@@ -130,7 +131,8 @@ def rasterize(
         render_depth: also return the expected depth map
         near_plane, far_plane: camera-frame z range rendered (metres)
         eps2d: 2D low-pass dilation (px^2), gsplat's 0.3
-        tile_size, max_candidates: torch backend tiling / memory knobs
+        tile_size, max_candidates: torch backend tiling / memory knobs (None: the compositor's own tile size)
+        compositor: torch backend's compositing method, "auto" / "numba" / "dense" (see ``composite``)
 
     Returns:
         RenderOutput with colors [C, H, W, D], alphas [C, H, W, 1], depths.
@@ -180,6 +182,7 @@ def rasterize(
         tile_size=tile_size,
         max_candidates=max_candidates,
         stats_out=stats,
+        method=compositor,
     )
     depth_img = None
     if render_depth:
