@@ -45,25 +45,27 @@ def _blends(n: int, spread: float, dtype, seed: int = 0) -> torch.Tensor:
     return torch.einsum("nk,knij->nij", w, R).to(dtype)  # LBS-like blends of three rotations
 
 
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "torch"])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("spread", [0.2, 1.0, 2.5])
-def test_polar_rotation_matches_svd_values_and_gradients(dtype, spread):
+def test_polar_rotation_matches_svd_values_and_gradients(dtype, spread, compiled):
     M = _blends(400, spread, dtype)
     ok = torch.det(M.double()) > 1e-2  # SVD's own gradient is ill-conditioned near singular blends
     tv, tg = POLAR_TOL[dtype]
-    Q = gm.polar_rotation(M)
+    Q = gm.polar_rotation(M, compiled=compiled)
     torch.testing.assert_close(Q, orthonormalize(M.double()).to(dtype), rtol=0, atol=tv)
     torch.testing.assert_close(torch.det(Q.double()), torch.ones(len(M), dtype=torch.float64), rtol=0, atol=10 * tv)
     G = torch.randn(M.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     a = M.double().clone().requires_grad_()
-    (gm.polar_rotation(a) * G).sum().backward()
+    (gm.polar_rotation(a, compiled=compiled) * G).sum().backward()
     b = M.double().clone().requires_grad_()
     (orthonormalize(b) * G).sum().backward()
     scale = b.grad[ok].abs().max()
     torch.testing.assert_close(a.grad[ok] / scale, b.grad[ok] / scale, rtol=0, atol=tg)
 
 
-def test_polar_rotation_hard_cases():
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "torch"])
+def test_polar_rotation_hard_cases(compiled):
     I = torch.eye(3, dtype=torch.float64)
     R = axis_angle_to_matrix(torch.tensor([[0.0, 0.0, np.pi * 0.999]], dtype=torch.float64))[0]
     cases = torch.stack([
@@ -73,7 +75,7 @@ def test_polar_rotation_hard_cases():
         torch.zeros(3, 3, dtype=torch.float64),  # degenerate
         1e-20 * I,                          # tiny scale: scaling keeps Newton exact
     ]).requires_grad_()
-    Q = gm.polar_rotation(cases)
+    Q = gm.polar_rotation(cases, compiled=compiled)
     assert torch.isfinite(Q).all()
     torch.testing.assert_close(torch.det(Q.detach()), torch.ones(5, dtype=torch.float64), rtol=0, atol=1e-9)
     torch.testing.assert_close(Q[0].detach(), I, rtol=0, atol=1e-12)
