@@ -67,3 +67,44 @@ def test_polar_closed_form_backward_matches_autograd_of_the_iteration(dtype):
     scale = b.grad.abs().max()
     torch.testing.assert_close(a.grad / scale, b.grad / scale, rtol=0, atol=1e-10 if dtype == torch.float64 else 1e-4)
     assert torch.autograd.gradcheck(lambda x: gm.polar_rotation(x, compiled=True), (M[:5].double().requires_grad_(),))
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_posed_quaternion_matches_the_torch_composition(dtype):
+    from gsavatar.geometry.rotations import axis_angle_to_matrix
+    g = torch.Generator().manual_seed(4)
+    n = 400
+    R3 = axis_angle_to_matrix(torch.randn(3, n, 3, generator=g, dtype=torch.float64) * 1.5)
+    w = torch.rand(n, 3, generator=g, dtype=torch.float64)
+    A = torch.einsum("nk,knij->nij", w / w.sum(1, keepdim=True), R3)  # LBS-like blends
+    A = A * (0.5 + torch.rand(n, 1, 1, generator=g, dtype=torch.float64))  # and a scale
+    A = A[torch.det(A) > 1e-2]
+    affine = torch.cat([A, torch.randn(A.shape[0], 3, 1, generator=g, dtype=torch.float64)], -1).to(dtype)
+    q = torch.nn.functional.normalize(torch.randn(A.shape[0], 4, generator=g, dtype=torch.float64), dim=-1).to(dtype)
+    c = torch.randn(A.shape[0], 3, generator=g, dtype=dtype)
+    G = torch.randn(A.shape[0], 4, generator=g, dtype=dtype)
+    outs = {}
+    for compiled in (True, False):
+        a, qq = affine.clone().requires_grad_(), q.clone().requires_grad_()
+        means, quats = gm.pose_gaussians(c, qq, a, compiled=compiled)
+        outs[compiled] = (means, quats, *torch.autograd.grad((quats * G).sum() + means.sum(), (a, qq)))
+    tol = {"rtol": 1e-10, "atol": 1e-10} if dtype == torch.float64 else {"rtol": 1e-4, "atol": 2e-5}
+    assert (outs[True][1][:, 0] >= 0).all()
+    for x, y, name in zip(outs[True], outs[False], ("means", "quats", "d affine", "d quats")):
+        torch.testing.assert_close(x, y, **tol, msg=name)
+
+
+def test_posed_quaternion_zero_and_singular_inputs():
+    I = torch.eye(3, dtype=torch.float64)
+    affine = torch.cat([torch.stack([I, 2 * I, 0.5 * (I + torch.diag(torch.tensor([1.0, -1.0, -1.0],
+                                                                                  dtype=torch.float64)))]),
+                        torch.zeros(3, 3, 1, dtype=torch.float64)], -1).requires_grad_()
+    q = torch.tensor([[0.0, 0, 0, 0], [0.5, 0.5, 0.5, 0.5], [1.0, 0, 0, 0]], dtype=torch.float64).requires_grad_()
+    c = torch.zeros(3, 3, dtype=torch.float64)
+    a_means, a_quats = gm.pose_gaussians(c, q, affine, compiled=True)  # a singular blend: the SVD path for all
+    _, b_quats = gm.pose_gaussians(c, q, affine, compiled=False)
+    torch.testing.assert_close(a_quats, b_quats)
+    _, ok = gm.pose_gaussians(c[:2], q[:2], affine[:2], compiled=True)  # the compiled path, zero quaternion
+    torch.testing.assert_close(ok[0], torch.tensor([1.0, 0, 0, 0], dtype=torch.float64))
+    ok.sum().backward()
+    assert torch.isfinite(q.grad).all() and torch.isfinite(affine.grad).all()

@@ -120,7 +120,10 @@ def _run(fn, av, inputs, training, correctives, sh):
 
 @pytest.mark.parametrize("center", [True, False], ids=["cpu_recipe", "paper_model"])
 @pytest.mark.parametrize("name", VARIANT_NAMES)
-def test_every_variant_is_bit_identical_to_the_pre_refactor_forward(parts, name, center):
+def test_every_variant_matches_the_pre_refactor_forward(parts, name, center):
+    # Bit-identical until the compiled CPU kernels (models/kernels.py) replaced einsum and the torch polar
+    # iteration: they sum in another order and iterate the polar factor in float64, so float32 outputs and
+    # gradients now agree to rounding (their own tests compare them with the torch ops they replace).
     av = make_variant(parts, name, center_correctives=center)
     pose, rr, rt, face, lat = make_inputs(parts)
     for inputs in ((pose, rr, rt, face, lat), (pose, rr, rt, None, None)):  # face / latents given and absent
@@ -128,10 +131,12 @@ def test_every_variant_is_bit_identical_to_the_pre_refactor_forward(parts, name,
             got_out, got_grad = _run(type(av).__call__, av, inputs, *args)
             want_out, want_grad = _run(pre_refactor_forward, av, inputs, *args)
             for f, a, b in zip(AvatarOutput._fields, got_out, want_out):
-                assert torch.equal(a, b), (call, f)
+                torch.testing.assert_close(a, b, rtol=1e-5, atol=2e-6, msg=f"{call} {f}")
             assert got_grad.keys() == want_grad.keys(), call
             for n in got_grad:
-                assert torch.equal(got_grad[n], want_grad[n]), (call, n)
+                scale = want_grad[n].abs().max().clamp_min(1e-12)
+                torch.testing.assert_close(got_grad[n] / scale, want_grad[n] / scale, rtol=0, atol=1e-4,
+                                           msg=f"{call} {n}")
 
 
 @pytest.mark.parametrize("name", VARIANT_NAMES)

@@ -23,7 +23,7 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from gsavatar.geometry.rotations import matrix_to_quat, orthonormalize, quat_to_matrix
-from gsavatar.models.kernels import basis_product, polar_rotation_fast
+from gsavatar.models.kernels import basis_product, polar_rotation_fast, posed_quaternion_fast
 from gsavatar.models.config import SH_C0
 
 HAND_GROUP_NAMES = ("left_hand", "right_hand")
@@ -237,15 +237,31 @@ def blend_affine(transforms: Tensor, skin_indices: Tensor, skin_weights: Tensor,
     return torch.einsum("nk,bnkij->bnij", skin_weights.to(transforms.dtype), transforms[:, skin_indices, :3, :])
 
 
-def pose_gaussians(canonical: Tensor, quats: Tensor, affine: Tensor) -> tuple[Tensor, Tensor]:
+def pose_gaussians(canonical: Tensor, quats: Tensor, affine: Tensor, compiled: bool = True) -> tuple[Tensor, Tensor]:
     """Pose canonical Gaussians with blended transforms.
+
+    The posed rotation is ``polar(A) @ R(quats)`` as a unit quaternion with ``w >= 0``. ``compiled``
+    (CPU, every blend with ``det > POLAR_MIN_DET``): one fused kernel with a closed-form backward
+    (:func:`~gsavatar.models.kernels.posed_quaternion_fast`); False: the torch composition, its oracle.
 
     canonical [B, G, 3] rest-space centres; quats [B, G, 4] wxyz unit (canonical);
     affine [B, G, 3, 4] blended posed_from_rest -> (means [B, G, 3] world, quats [B, G, 4] wxyz)
     """
     means = (affine[..., :3] @ canonical[..., None])[..., 0] + affine[..., 3]
-    R = polar_rotation(affine[..., :3]) @ quat_to_matrix(quats)
+    A = affine[..., :3]
+    if compiled and bool((_det3(A.detach()) > POLAR_MIN_DET).all()):
+        fast = posed_quaternion_fast(A, quats, 10 * torch.finfo(A.dtype).eps)
+        if fast is not None:
+            return means, fast
+    R = polar_rotation(A, compiled=compiled) @ quat_to_matrix(quats)
     return means, matrix_to_quat(R)
+
+
+def _det3(M: Tensor) -> Tensor:
+    """Determinant of 3x3 matrices in closed form. [..., 3, 3] -> [...]"""
+    return (M[..., 0, 0] * (M[..., 1, 1] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 1])
+            - M[..., 0, 1] * (M[..., 1, 0] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 0])
+            + M[..., 0, 2] * (M[..., 1, 0] * M[..., 2, 1] - M[..., 1, 1] * M[..., 2, 0]))
 
 
 # --- initialisation ---------------------------------------------------------------------

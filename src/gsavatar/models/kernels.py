@@ -18,10 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-try:
-    import numba
-except ImportError:  # pragma: no cover - numba is a declared dependency; einsum stands in
-    numba = None
+from gsavatar.utils.compiled import numba, set_threads
 
 
 if numba is not None:
@@ -62,100 +59,176 @@ if numba is not None:
                             g_basis[n, k, d] += cb * grad[b, n, d]
 
 
+    @numba.njit(cache=False, inline="always")
+    def _newton_polar(x, cof, tol, max_iters):
+        # x [9] row-major 3x3 with det > 0, replaced by its orthogonal polar factor. Scaled Newton
+        # X <- (g X + (g X)^-T) / 2, g = |det X|^(-1/3) (Higham 1986), float64.
+        for it in range(max_iters):
+            cof[0] = x[4] * x[8] - x[5] * x[7]
+            cof[1] = x[5] * x[6] - x[3] * x[8]
+            cof[2] = x[3] * x[7] - x[4] * x[6]
+            cof[3] = x[7] * x[2] - x[8] * x[1]
+            cof[4] = x[8] * x[0] - x[6] * x[2]
+            cof[5] = x[6] * x[1] - x[7] * x[0]
+            cof[6] = x[1] * x[5] - x[2] * x[4]
+            cof[7] = x[2] * x[3] - x[0] * x[5]
+            cof[8] = x[0] * x[4] - x[1] * x[3]
+            det = x[0] * cof[0] + x[1] * cof[1] + x[2] * cof[2]
+            g = max(abs(det), 1e-30) ** (-1.0 / 3.0)
+            a = 0.5 * g
+            b = 0.5 / (g * det)
+            delta = 0.0
+            for i in range(9):
+                v = a * x[i] + b * cof[i]
+                delta = max(delta, abs(v - x[i]))
+                x[i] = v
+            if delta <= tol:
+                break
+
     @numba.njit(parallel=True, cache=False)
     def _polar_forward(M, R, S, tol, max_iters):
         # M [N, 9] row-major blends with det > 0 -> R [N, 9] orthogonal polar factor, S [N, 9] = R^T M.
-        # Scaled Newton X <- (g X + (g X)^-T) / 2, g = |det X|^(-1/3) (Higham 1986), float64 inside.
-        x = np.empty(9)
-        cof = np.empty(9)
         for n in numba.prange(M.shape[0]):
+            x = np.empty(9)
+            cof = np.empty(9)
             for i in range(9):
                 x[i] = M[n, i]
-            for it in range(max_iters):
-                cof[0] = x[4] * x[8] - x[5] * x[7]
-                cof[1] = x[5] * x[6] - x[3] * x[8]
-                cof[2] = x[3] * x[7] - x[4] * x[6]
-                cof[3] = x[7] * x[2] - x[8] * x[1]
-                cof[4] = x[8] * x[0] - x[6] * x[2]
-                cof[5] = x[6] * x[1] - x[7] * x[0]
-                cof[6] = x[1] * x[5] - x[2] * x[4]
-                cof[7] = x[2] * x[3] - x[0] * x[5]
-                cof[8] = x[0] * x[4] - x[1] * x[3]
-                det = x[0] * cof[0] + x[1] * cof[1] + x[2] * cof[2]
-                g = max(abs(det), 1e-30) ** (-1.0 / 3.0)
-                a = 0.5 * g
-                b = 0.5 / (g * det)
-                delta = 0.0
-                for i in range(9):
-                    v = a * x[i] + b * cof[i]
-                    delta = max(delta, abs(v - x[i]))
-                    x[i] = v
-                if delta <= tol:
-                    break
+            _newton_polar(x, cof, tol, max_iters)
             for i in range(9):
                 R[n, i] = x[i]
             for i in range(3):  # S = R^T M
                 for j in range(3):
                     S[n, 3 * i + j] = x[i] * M[n, j] + x[3 + i] * M[n, 3 + j] + x[6 + i] * M[n, 6 + j]
 
+    @numba.njit(cache=False, inline="always")
+    def _polar_vjp(R, S, n, u0, u1, u2, out):
+        # Given dL/dω = u for dR = R [ω]x, writes dL/dM = R [y]x, y = (tr(P) I - P)^-1 u, P = sym(S) (see
+        # polar_rotation_fast), into out[n].
+        p00 = S[n, 0]
+        p11 = S[n, 4]
+        p22 = S[n, 8]
+        p01 = 0.5 * (S[n, 1] + S[n, 3])
+        p02 = 0.5 * (S[n, 2] + S[n, 6])
+        p12 = 0.5 * (S[n, 5] + S[n, 7])
+        tr = p00 + p11 + p22
+        k00 = tr - p00  # K = tr I - P: symmetric, positive definite for P > 0; solved by cofactors
+        k11 = tr - p11
+        k22 = tr - p22
+        k01 = -p01
+        k02 = -p02
+        k12 = -p12
+        c00 = k11 * k22 - k12 * k12
+        c01 = k02 * k12 - k01 * k22
+        c02 = k01 * k12 - k02 * k11
+        c11 = k00 * k22 - k02 * k02
+        c12 = k01 * k02 - k00 * k12
+        c22 = k00 * k11 - k01 * k01
+        det = k00 * c00 + k01 * c01 + k02 * c02
+        if not (abs(det) > 1e-30):
+            for i in range(9):
+                out[n, i] = 0.0
+            return
+        y0 = (c00 * u0 + c01 * u1 + c02 * u2) / det
+        y1 = (c01 * u0 + c11 * u1 + c12 * u2) / det
+        y2 = (c02 * u0 + c12 * u1 + c22 * u2) / det
+        for i in range(3):  # R [y]x, [y]x = [[0, -y2, y1], [y2, 0, -y0], [-y1, y0, 0]]
+            r0 = R[n, 3 * i]
+            r1 = R[n, 3 * i + 1]
+            r2 = R[n, 3 * i + 2]
+            out[n, 3 * i] = r1 * y2 - r2 * y1
+            out[n, 3 * i + 1] = -r0 * y2 + r2 * y0
+            out[n, 3 * i + 2] = r0 * y1 - r1 * y0
+
     @numba.njit(parallel=True, cache=False)
     def _polar_backward(R, S, G, out):
-        # dL/dM = R [y]x, y = (tr(P) I - P)^-1 vee(R^T G - G^T R), P = sym(S) (derivation in polar_rotation_fast).
         for n in numba.prange(R.shape[0]):
-            # W = R^T G
+            # dL/dω = vee(R^T G - G^T R) for dR = R [ω]x
             w = np.empty(9)
             for i in range(3):
                 for j in range(3):
                     w[3 * i + j] = R[n, i] * G[n, j] + R[n, 3 + i] * G[n, 3 + j] + R[n, 6 + i] * G[n, 6 + j]
-            u0 = w[7] - w[5]  # vee(W - W^T) = (W21 - W12, W02 - W20, W10 - W01)
-            u1 = w[2] - w[6]
-            u2 = w[3] - w[1]
-            p00 = S[n, 0]
-            p11 = S[n, 4]
-            p22 = S[n, 8]
-            p01 = 0.5 * (S[n, 1] + S[n, 3])
-            p02 = 0.5 * (S[n, 2] + S[n, 6])
-            p12 = 0.5 * (S[n, 5] + S[n, 7])
-            tr = p00 + p11 + p22
-            # K = tr I - P (symmetric, positive definite for P > 0): solve K y = u by cofactors
-            k00 = tr - p00
-            k11 = tr - p11
-            k22 = tr - p22
-            k01 = -p01
-            k02 = -p02
-            k12 = -p12
-            c00 = k11 * k22 - k12 * k12
-            c01 = k02 * k12 - k01 * k22
-            c02 = k01 * k12 - k02 * k11
-            c11 = k00 * k22 - k02 * k02
-            c12 = k01 * k02 - k00 * k12
-            c22 = k00 * k11 - k01 * k01
-            det = k00 * c00 + k01 * c01 + k02 * c02
-            if not (abs(det) > 1e-30):
-                for i in range(9):
-                    out[n, i] = 0.0
-                continue
-            y0 = (c00 * u0 + c01 * u1 + c02 * u2) / det
-            y1 = (c01 * u0 + c11 * u1 + c12 * u2) / det
-            y2 = (c02 * u0 + c12 * u1 + c22 * u2) / det
-            # [y]x = [[0, -y2, y1], [y2, 0, -y0], [-y1, y0, 0]]; out = R [y]x
+            _polar_vjp(R, S, n, w[7] - w[5], w[2] - w[6], w[3] - w[1], out)
+
+    @numba.njit(parallel=True, cache=False)
+    def _posed_quat_forward(M, C, tol, max_iters, Q, P, R, S):
+        # M [N, 9] blends (det > 0), C [N, 4] unit wxyz -> Q [N, 4] = ±quat(polar(M)) ⊗ C with Q_w >= 0;
+        # saves P [N, 4] = ±quat(polar(M)) (the sign folded in), R [N, 9] polar factor, S [N, 9] = R^T M.
+        for n in numba.prange(M.shape[0]):
+            x = np.empty(9)
+            cof = np.empty(9)
+            for i in range(9):
+                x[i] = M[n, i]
+            _newton_polar(x, cof, tol, max_iters)
+            for i in range(9):
+                R[n, i] = x[i]
             for i in range(3):
-                r0 = R[n, 3 * i]
-                r1 = R[n, 3 * i + 1]
-                r2 = R[n, 3 * i + 2]
-                out[n, 3 * i] = r1 * y2 - r2 * y1
-                out[n, 3 * i + 1] = -r0 * y2 + r2 * y0
-                out[n, 3 * i + 2] = r0 * y1 - r1 * y0
+                for j in range(3):
+                    S[n, 3 * i + j] = x[i] * M[n, j] + x[3 + i] * M[n, 3 + j] + x[6 + i] * M[n, 6 + j]
+            # Shepperd: the largest of 4w^2, 4x^2, 4y^2, 4z^2 decides the branch
+            t0 = 1.0 + x[0] + x[4] + x[8]
+            t1 = 1.0 + x[0] - x[4] - x[8]
+            t2 = 1.0 - x[0] + x[4] - x[8]
+            t3 = 1.0 - x[0] - x[4] + x[8]
+            if t0 >= t1 and t0 >= t2 and t0 >= t3:
+                r = 2.0 * np.sqrt(max(t0, 1e-300))
+                pw, px, py, pz = 0.25 * r, (x[7] - x[5]) / r, (x[2] - x[6]) / r, (x[3] - x[1]) / r
+            elif t1 >= t2 and t1 >= t3:
+                r = 2.0 * np.sqrt(max(t1, 1e-300))
+                pw, px, py, pz = (x[7] - x[5]) / r, 0.25 * r, (x[1] + x[3]) / r, (x[2] + x[6]) / r
+            elif t2 >= t3:
+                r = 2.0 * np.sqrt(max(t2, 1e-300))
+                pw, px, py, pz = (x[2] - x[6]) / r, (x[1] + x[3]) / r, 0.25 * r, (x[5] + x[7]) / r
+            else:
+                r = 2.0 * np.sqrt(max(t3, 1e-300))
+                pw, px, py, pz = (x[3] - x[1]) / r, (x[2] + x[6]) / r, (x[5] + x[7]) / r, 0.25 * r
+            cn = np.sqrt(C[n, 0] ** 2 + C[n, 1] ** 2 + C[n, 2] ** 2 + C[n, 3] ** 2)
+            if cn > 1e-12:
+                cw, cx, cy, cz = C[n, 0] / cn, C[n, 1] / cn, C[n, 2] / cn, C[n, 3] / cn
+            else:  # zero quaternion -> identity (like quat_to_matrix)
+                cw, cx, cy, cz = 1.0, 0.0, 0.0, 0.0
+            qw = pw * cw - px * cx - py * cy - pz * cz
+            qx = pw * cx + px * cw + py * cz - pz * cy
+            qy = pw * cy - px * cz + py * cw + pz * cx
+            qz = pw * cz + px * cy - py * cx + pz * cw
+            sgn = -1.0 if qw < 0.0 else 1.0
+            Q[n, 0], Q[n, 1], Q[n, 2], Q[n, 3] = sgn * qw, sgn * qx, sgn * qy, sgn * qz
+            P[n, 0], P[n, 1], P[n, 2], P[n, 3] = sgn * pw, sgn * px, sgn * py, sgn * pz
 
-
-def _threads() -> None:
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    @numba.njit(parallel=True, cache=False)
+    def _posed_quat_backward(C, P, R, S, G, g_M, g_C):
+        # Q = P ⊗ C (bilinear); dP = P ⊗ (0, ω) / 2 for dR = R [ω]x; then the polar VJP.
+        for n in numba.prange(C.shape[0]):
+            gw, gx, gy, gz = G[n, 0], G[n, 1], G[n, 2], G[n, 3]
+            cn = np.sqrt(C[n, 0] ** 2 + C[n, 1] ** 2 + C[n, 2] ** 2 + C[n, 3] ** 2)
+            if cn > 1e-12:
+                cw, cx, cy, cz = C[n, 0] / cn, C[n, 1] / cn, C[n, 2] / cn, C[n, 3] / cn
+            else:
+                cw, cx, cy, cz = 1.0, 0.0, 0.0, 0.0
+            pw, px, py, pz = P[n, 0], P[n, 1], P[n, 2], P[n, 3]
+            ew = gw * pw + gx * px + gy * py + gz * pz  # dL/d(C / |C|)
+            ex = -gw * px + gx * pw + gy * pz - gz * py
+            ey = -gw * py - gx * pz + gy * pw + gz * px
+            ez = -gw * pz + gx * py - gy * px + gz * pw
+            radial = ew * cw + ex * cx + ey * cy + ez * cz  # normalisation: keep the tangential part
+            inv = 1.0 / cn if cn > 1e-12 else 0.0
+            g_C[n, 0] = (ew - radial * cw) * inv
+            g_C[n, 1] = (ex - radial * cx) * inv
+            g_C[n, 2] = (ey - radial * cy) * inv
+            g_C[n, 3] = (ez - radial * cz) * inv
+            hw = gw * cw + gx * cx + gy * cy + gz * cz
+            hx = -gw * cx + gx * cw - gy * cz + gz * cy
+            hy = -gw * cy + gx * cz + gy * cw - gz * cx
+            hz = -gw * cz - gx * cy + gy * cx + gz * cw
+            u0 = 0.5 * (-hw * px + hx * pw + hy * pz - hz * py)
+            u1 = 0.5 * (-hw * py - hx * pz + hy * pw + hz * px)
+            u2 = 0.5 * (-hw * pz + hx * py - hy * px + hz * pw)
+            _polar_vjp(R, S, n, u0, u1, u2, g_M)
 
 
 class _BasisProduct(torch.autograd.Function):
     @staticmethod
     def forward(ctx, coeffs: Tensor, basis: Tensor) -> Tensor:
-        _threads()
+        set_threads()
         c, m = coeffs.detach().numpy(), basis.detach().numpy()
         out = np.empty((c.shape[0], c.shape[1], m.shape[2]), c.dtype)
         _forward(c, m, out)
@@ -167,7 +240,7 @@ class _BasisProduct(torch.autograd.Function):
     def backward(ctx, grad: Tensor):
         coeffs, basis = ctx.saved_tensors
         need_c, need_b = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-        _threads()
+        set_threads()
         c, m = coeffs.detach().numpy(), basis.detach().numpy()
         g = grad.detach().contiguous().numpy()
         g_c = np.empty(c.shape, c.dtype) if need_c else np.empty((0, 0, 0), c.dtype)
@@ -192,19 +265,19 @@ def basis_product(coeffs: Tensor, basis: Tensor) -> Tensor:
 class _PolarRotation(torch.autograd.Function):
     @staticmethod
     def forward(ctx, M: Tensor, tol: float, max_iters: int) -> Tensor:
-        _threads()
+        set_threads()
         m = M.detach().reshape(-1, 9).to(torch.float64).numpy()
         R = np.empty_like(m)
         S = np.empty_like(m)
         _polar_forward(m, R, S, tol, max_iters)
-        ctx.rs = (R, S)
+        ctx.rs = (R, S)  # float64 numpy, not tensors: backward needs the exact iterate
         return torch.from_numpy(R).to(M.dtype).reshape(M.shape)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad: Tensor):
         R, S = ctx.rs
-        _threads()
+        set_threads()
         out = np.empty_like(R)
         _polar_backward(R, S, grad.detach().reshape(-1, 9).to(torch.float64).numpy(), out)
         return torch.from_numpy(out).to(grad.dtype).reshape(grad.shape), None, None
@@ -226,3 +299,46 @@ def polar_rotation_fast(M: Tensor, tol: float, max_iters: int = 12) -> Tensor | 
     if numba is None or M.device.type != "cpu" or M.dtype not in (torch.float32, torch.float64) or M.numel() == 0:
         return None
     return _PolarRotation.apply(M, float(tol), int(max_iters))
+
+
+class _PosedQuat(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, M: Tensor, C: Tensor, tol: float, max_iters: int) -> Tensor:
+        set_threads()
+        m = M.detach().reshape(-1, 9).to(torch.float64).numpy()
+        c = C.detach().reshape(-1, 4).to(torch.float64).numpy()
+        n = m.shape[0]
+        Q, P = np.empty((n, 4)), np.empty((n, 4))
+        R, S = np.empty((n, 9)), np.empty((n, 9))
+        _posed_quat_forward(m, c, tol, max_iters, Q, P, R, S)
+        ctx.saved = (c, P, R, S)
+        return torch.from_numpy(Q).to(C.dtype).reshape(C.shape)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: Tensor):
+        c, P, R, S = ctx.saved
+        set_threads()
+        g_M, g_C = np.empty_like(R), np.empty_like(c)
+        _posed_quat_backward(c, P, R, S, grad.detach().reshape(-1, 4).to(torch.float64).numpy(), g_M, g_C)
+        shape_m = (*grad.shape[:-1], 3, 3)
+        return (torch.from_numpy(g_M).to(grad.dtype).reshape(shape_m), torch.from_numpy(g_C).to(grad.dtype).reshape(grad.shape),
+                None, None)
+
+
+def posed_quaternion_fast(M: Tensor, quats: Tensor, tol: float, max_iters: int = 12) -> Tensor | None:
+    """``matrix_to_quat(polar(M) @ quat_to_matrix(quats))`` fused and compiled; None where it does not apply
+    (not CPU float32/float64, numba missing, or a blend with ``det <= min_det`` that needs the SVD path).
+
+    The posed rotation is the quaternion product ``quat(polar(M)) ⊗ quats`` (sign chosen so ``w >= 0``,
+    like :func:`~gsavatar.geometry.rotations.matrix_to_quat`), one Shepperd branch per matrix instead
+    of evaluating all four. Backward in closed form: the product is bilinear; ``dR = R [ω]x`` moves the
+    polar factor's quaternion by ``p ⊗ (0, ω) / 2``; :func:`polar_rotation_fast` gives ``dL/dM`` from
+    ``dL/dω``. Tested against autograd through the torch composition.
+
+    M [..., 3, 3] with det > 0, quats [..., 4] wxyz (normalised inside; zero -> identity) -> [..., 4] unit wxyz
+    """
+    if (numba is None or M.device.type != "cpu" or M.dtype not in (torch.float32, torch.float64)
+            or quats.dtype != M.dtype or M.numel() == 0):
+        return None
+    return _PosedQuat.apply(M, quats, float(tol), int(max_iters))

@@ -4,7 +4,7 @@ The same rules as the dense torch compositor (``compositor.py``, kept as the ora
 when numba is missing), evaluated the way gsplat's CUDA kernels do: one loop per pixel over its tile's
 depth-sorted list, stopping at the transmittance cut-off, so only (pixel, Gaussian) pairs up to the
 stop are touched and nothing is padded. Tiles run in parallel (``numba.prange``) on
-``torch.get_num_threads()`` threads.
+``torch.get_num_threads()`` threads (:func:`gsavatar.utils.compiled.set_threads`).
 
 Backward re-walks each pixel's list once instead of storing per-pair state, applying gsplat's VJP
 front to back with ``behind_i = total - prefix_i`` (the torch oracle's cumsum form), where
@@ -23,10 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-try:
-    import numba
-except ImportError:  # pragma: no cover - numba is a declared dependency; the torch compositor stands in
-    numba = None
+from gsavatar.utils.compiled import numba, set_threads
 
 from .projection import ALPHA_THRESHOLD
 
@@ -162,18 +159,12 @@ if numba is not None:
                         T = next_T
 
 
-def _threads() -> int:
-    n = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
-    numba.set_num_threads(n)
-    return n
-
-
 class CompositeNumba(torch.autograd.Function):
     """Forward/backward through the compiled kernels; inputs in tile-list order (see :func:`composite`)."""
 
     @staticmethod
     def forward(ctx, params_q, colors_q, tile_ids, offsets, counts, width, height, n_cameras, tile_size, stats_out):
-        _threads()
+        set_threads()
         n_pix = n_cameras * height * width
         D = colors_q.shape[1]
         p = params_q.detach().cpu().contiguous().numpy()
@@ -196,7 +187,7 @@ class CompositeNumba(torch.autograd.Function):
     def backward(ctx, g_color, g_alpha):
         params_q, colors_q = ctx.saved_tensors
         tid, off, stop, out, width, height, tile_size = ctx.setup
-        _threads()
+        set_threads()
         n_q, D = colors_q.shape
         n_pix = stop.shape[0]
         g_pix = np.zeros((n_pix, D + 1), np.float64)
