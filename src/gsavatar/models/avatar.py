@@ -164,6 +164,8 @@ class GaussianAvatar(nn.Module):
         self.ctrl_basis = z(C, Bc, 3)
         # ModelConfig.anchor_sh0: a colour basis per anchor, its delta interpolated to the Gaussians like ``w``
         self.sh0_anchor_basis = z(A, Bg, 3) if cfg.anchor_sh0 and Bg else None  # [A, Bg, 3] pre-tanh
+        # ModelConfig.latent_sh0: latent -> colour delta per anchor, interpolated to the Gaussians
+        self.sh0_latent_basis = z(A, self.latent_in, 3) if cfg.latent_sh0 and self.latent_in else None  # [A, L, 3]
 
     # --- helpers -------------------------------------------------------------------------
     _LEGACY_HEAD_KEYS = ("mlp.", "uv_decoder.", "gauss_uv")
@@ -315,6 +317,7 @@ class GaussianAvatar(nn.Module):
         ("shn_bias", "shn_bias"), ("shn_basis", "shn_basis"),
         ("ctrl_bias", "ctrl_bias"), ("ctrl_basis", "ctrl_basis"),
         ("gauss_pos_basis", "gauss_pos_basis"), ("sh0_anchor_basis", "sh0_basis"),
+        ("sh0_latent_basis", "sh0_basis"),
     )
 
     def param_groups(self, lrs: LearningRates | None = None) -> list[dict]:

@@ -117,6 +117,11 @@ class ModelConfig:
     interpolated to the Gaussians like the coefficients: a region-wide colour change (a garment's dye) is then
     learnt once per anchor instead of once per Gaussian. Off by default (docs/train.md: it raises the
     frame dependence from 0.23 to 0.63 on ``small`` but lowers the latent gain)."""
+    latent_sh0: bool = False
+    """Also a linear map per anchor from its (standardised) appearance latent to a colour delta,
+    ``[A, latent_dim, 3]``, interpolated to the Gaussians like the coefficients: the colour change then
+    follows the latent directly instead of through the pose-and-latent MLP, so it cannot answer a pose it
+    saw with a colour it saw (docs/train.md). Needs ``use_latent``; off by default."""
     mlp_init: str = "linear"
     """Anchor-MLP init (:class:`~gsavatar.models.mlp.AnchorMLPs`): ``linear`` (``nn.Linear``'s, the
     paper's framework default) or ``he`` (variance-preserving). With ``linear`` the coefficients ``w``

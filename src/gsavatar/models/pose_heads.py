@@ -133,18 +133,24 @@ class AnchorMLPHead(PoseHead):
             position=gm.basis_delta(avatar.gauss_pos_basis, w_g),
             scale=gm.basis_delta(avatar.scale_basis, w_g),
             rotation=gm.basis_delta(avatar.rotation_basis, w_g),
-            sh0=self.sh0_delta(avatar, coeffs[..., :Bg], w_g),
+            sh0=self.sh0_delta(avatar, coeffs[..., :Bg], w_g, latents),
             shn=gm.basis_delta(avatar.shn_basis[:, :, :n_sh_rest], w_g) if n_sh_rest else None,
         )
 
     @staticmethod
-    def sh0_delta(avatar: GaussianAvatar, coeffs_g: Tensor, w_g: Tensor) -> Tensor:
-        """``<w_g, ΔΛ_sh0>`` per Gaussian, plus (``ModelConfig.anchor_sh0``) the anchors' ``<w_a, ΔΛ^a_sh0>``
-        interpolated to the Gaussians. coeffs_g [B, A, Bg], w_g [B, G, Bg] -> [B, G, 3]"""
+    def sh0_delta(avatar: GaussianAvatar, coeffs_g: Tensor, w_g: Tensor, latents: Tensor | None = None) -> Tensor:
+        """``<w_g, ΔΛ_sh0>`` per Gaussian, plus the anchors' ``<w_a, ΔΛ^a_sh0>`` (``ModelConfig.anchor_sh0``) and
+        ``l_a @ Λ^l_a`` (``ModelConfig.latent_sh0``) interpolated to the Gaussians.
+        coeffs_g [B, A, Bg], w_g [B, G, Bg], latents [B, A, L] or None -> [B, G, 3]"""
         d = gm.basis_delta(avatar.sh0_basis, w_g)
-        if avatar.sh0_anchor_basis is None:
+        d_a = None
+        if avatar.sh0_anchor_basis is not None:
+            d_a = torch.einsum("bak,akd->bad", coeffs_g, avatar.sh0_anchor_basis)  # [B, A, 3]
+        if avatar.sh0_latent_basis is not None and latents is not None:
+            d_l = torch.einsum("bal,ald->bad", latents.to(coeffs_g.dtype), avatar.sh0_latent_basis)  # [B, A, 3]
+            d_a = d_l if d_a is None else d_a + d_l
+        if d_a is None:
             return d
-        d_a = torch.einsum("bak,akd->bad", coeffs_g, avatar.sh0_anchor_basis)  # [B, A, 3]
         return d + gm.sparse_interpolate(d_a, avatar.sparse_weights("gauss_anchor", d_a.device, d_a.dtype))
 
 
