@@ -1,10 +1,14 @@
 """Benchmark the per-frame UV texel projection (``gsavatar.prep.project_uv``).
 
-Not a test. For each texture size it reports seconds per frame of
-:meth:`UVProjector.project` (images already decoded), the I/O floor (decoding that
-frame's images + masks with ``utils.io``), texels/s, and the error of the fused
-texture against the ground-truth texture (PSNR on texels seen by >= 2 views;
-``median_band`` and, for comparison, ``mean`` fusion). Prints a markdown table.
+Not a test. For each texture size, visibility path (``--visibility``: the compiled
+``zbuffer`` path and/or the numpy + open3d ``rays`` reference) and thread count
+(``--threads``: numba threads of the z-buffer kernels) it reports seconds per frame of
+:meth:`UVProjector.project` (images already decoded), the decode floor of that frame
+(raw ``cv2.imread`` of its images + masks, re-measured right before each projection so
+both see the same machine load) and their ratio, the time through gsavatar's readers,
+texels/s, and the error of the fused texture against the ground-truth texture (PSNR on
+texels seen by >= 2 views; ``median_band`` and, for comparison, ``mean`` fusion).
+Prints a markdown table.
 
 Inputs:
 
@@ -20,6 +24,8 @@ Inputs:
 
     PYTHONPATH=src .venv/bin/python benchmarks/bench_project_uv.py
     PYTHONPATH=src .venv/bin/python benchmarks/bench_project_uv.py --capture /data/synth_a --frames 0 10
+    OMP_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python benchmarks/bench_project_uv.py --thuman4 --sizes 512 1024 \
+        --threads 1 2 --visibility zbuffer rays --no-mean
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ import math
 import platform
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -145,6 +152,10 @@ def main() -> None:
     ap.add_argument("--jpeg", action="store_true", help="built-in scene: JPEG images (masks stay PNG)")
     ap.add_argument("--thuman4", action="store_true", help="built-in scene of THuman4.0's size: 24 views of 1330x1150 JPEG")
     ap.add_argument("--no-mean", action="store_true", help="skip the 'mean' fusion comparison")
+    ap.add_argument("--visibility", nargs="+", default=["zbuffer"], choices=["zbuffer", "rays"],
+                    help="visibility paths to time (ProjectConfig.visibility)")
+    ap.add_argument("--threads", type=int, nargs="+", default=[1],
+                    help="numba threads of the z-buffer path (torch.set_num_threads; the rays path ignores it)")
     ap.add_argument("--uv-cache", type=Path, default=Path(tempfile.gettempdir()) / "gsavatar_uv_cache")
     args = ap.parse_args()
     if args.thuman4:
@@ -197,37 +208,54 @@ def main() -> None:
     print(f"# decode per frame: {raw:.3f} s raw (cv2.imread of {len(cams)} images + masks), {io:.3f} s through "
           f"gsavatar's readers (float conversion, mask decoding, finite check)")
 
+    def raw_decode(f: int) -> float:
+        t0 = time.perf_counter()
+        for c in cams:
+            assert cv2.imread(str(cap.image_path(c, f)), cv2.IMREAD_COLOR) is not None
+            assert cv2.imread(str(cap.mask_path(c, f)), cv2.IMREAD_UNCHANGED) is not None
+        return time.perf_counter() - t0
+
+    import torch
+
+    threads0 = torch.get_num_threads()
     rows = []
     for size in args.sizes:
-        cfg = ProjectConfig(tex_size=size)
         t0 = time.perf_counter()
-        tm = build_texel_map(template, size=size, gutter=cfg.gutter_px)
+        tm = build_texel_map(template, size=size, gutter=ProjectConfig().gutter_px)
         t_map = time.perf_counter() - t0
-        proj = UVProjector(template.faces, tm, cfg, template.face_uv_mask)
-        proj_mean = UVProjector(template.faces, tm, ProjectConfig(tex_size=size, fusion="mean"), template.face_uv_mask)
-        proj.project(posed[0], views_of[frames[0]][:2], frame=frames[0])  # warm-up (imports, per-camera setup)
-        secs, p_med, p_mean, seen2 = [], [], [], []
-        for f, V in zip(frames, posed):
-            t0 = time.perf_counter()
-            fus = proj.project(V, views_of[f], frame=f)
-            secs.append(time.perf_counter() - t0)
-            gt = builtin_gt(template, tm) if args.capture is None else capture_gt(args.capture, f, size)
-            m = fus.valid & (fus.seen >= 2)
-            seen2.append(m.sum() / max(proj.num_texels, 1))
-            p_med.append(psnr(fus.texture[m], gt[m]))
-            if not args.no_mean:
-                fm = proj_mean.project(V, views_of[f], frame=f)
-                p_mean.append(psnr(fm.texture[m], gt[m]))
-        s = float(np.mean(secs))
-        rows.append((size, t_map, proj.num_texels, s, io, proj.num_texels / s, float(np.mean(seen2)),
-                     float(np.mean(p_med)), float(np.mean(p_mean)) if p_mean else float("nan")))
+        gt_of = {f: builtin_gt(template, tm) if args.capture is None else capture_gt(args.capture, f, size) for f in frames}
+        for vis in args.visibility:
+            for nth in (args.threads if vis == "zbuffer" else [1]):
+                torch.set_num_threads(nth)
+                cfg = ProjectConfig(tex_size=size, visibility=vis)
+                proj = UVProjector(template.faces, tm, cfg, template.face_uv_mask)
+                proj_mean = UVProjector(template.faces, tm, replace(cfg, fusion="mean"), template.face_uv_mask)
+                proj.project(posed[0], views_of[frames[0]], frame=frames[0])  # warm-up (JIT compile, per-camera setup)
+                secs, decs, p_med, p_mean, seen2 = [], [], [], [], []
+                for f, V in zip(frames, posed):
+                    decs.append(raw_decode(f))
+                    t0 = time.perf_counter()
+                    fus = proj.project(V, views_of[f], frame=f)
+                    secs.append(time.perf_counter() - t0)
+                    gt = gt_of[f]
+                    m = fus.valid & (fus.seen >= 2)
+                    seen2.append(m.sum() / max(proj.num_texels, 1))
+                    p_med.append(psnr(fus.texture[m], gt[m]))
+                    if not args.no_mean:
+                        fm = proj_mean.project(V, views_of[f], frame=f)
+                        p_mean.append(psnr(fm.texture[m], gt[m]))
+                s, d = float(np.mean(secs)), float(np.mean(decs))
+                rows.append((size, vis, nth if vis == "zbuffer" else 1, t_map, proj.num_texels, s, d, io, proj.num_texels / s,
+                             float(np.mean(seen2)), float(np.mean(p_med)), float(np.mean(p_mean)) if p_mean else float("nan")))
+    torch.set_num_threads(threads0)
 
     print()
-    print("| tex size | texel map (s, once) | texels projected | project s/frame | read s/frame | project / read | raw decode s/frame | project / raw decode | texels/s | seen>=2 | PSNR median_band (dB) | PSNR mean (dB) |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
-    for size, t_map, n, s, io_, tps, s2, pm, pmean in rows:
-        print(f"| {size} | {t_map:.2f} | {n:,} | {s:.3f} | {io_:.3f} | {s / io_:.2f} | {raw:.3f} | {s / raw:.2f} | {tps / 1e6:.2f} M | "
-              f"{100 * s2:.0f} % | {pm:.2f} | {pmean:.2f} |")
+    print("| tex size | visibility | threads | texel map (s, once) | texels projected | project s/frame | raw decode s/frame "
+          "| **project / raw decode** | read s/frame | project / read | texels/s | seen>=2 | PSNR median_band (dB) | PSNR mean (dB) |")
+    print("|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for size, vis, nth, t_map, n, s, d, io_, tps, s2, pm, pmean in rows:
+        print(f"| {size} | {vis} | {nth} | {t_map:.2f} | {n:,} | {s:.3f} | {d:.3f} | **{s / d:.2f}** | {io_:.3f} | {s / io_:.2f} | "
+              f"{tps / 1e6:.2f} M | {100 * s2:.0f} % | {pm:.2f} | {pmean:.2f} |")
     if tmp is not None:
         tmp.cleanup()
 

@@ -440,7 +440,8 @@ def test_sampling_matches_naive_reference_with_occluder():
     cams = [make_cam("a", (0.3, 0.3, 2.5), size=96, f=100), make_cam("b", (-1.2, -0.2, 2.0), size=96, f=110),
             make_cam("c", (0.5, -2.0, 1.0), size=96, f=90, dist=[-0.1, 0.02, 0.0, 0.0, 0.0])]
     views = [(c, *render(V, F, C, c)) for c in cams]
-    cfg = ProjectConfig(tex_size=24, erode_px=3)
+    # the ray path is exact (zbuffer vs rays: tests/prep/test_project_uv_zbuffer.py)
+    cfg = ProjectConfig(tex_size=24, erode_px=3, visibility="rays")
     proj = UVProjector(F, tm, cfg)
     rgb, ok = proj.samples(V, views)
     ref_rgb, ref_ok = _naive_samples(V, F, tm, views, cfg)

@@ -9,30 +9,34 @@ For one frame:
    (``cos(normal, to_camera) >= min_cos``: back-facing and grazing texels are dropped),
    projects inside the image (OpenCV distortion, same model as
    :func:`gsavatar.geometry.camera.project`), all four bilinear taps lie in the
-   **eroded** foreground mask, and the segment texel -> camera centre hits no triangle
-   of the posed mesh (open3d ``RaycastingScene.test_occlusions``, one scene per frame);
-   its colour is the bilinear image sample;
+   **eroded** foreground mask, and it is visible; its colour is the bilinear image sample;
 3. samples are fused per texel: ``median_band`` (the paper) takes the median luminance
    over the views, drops samples whose luminance is outside ``[lo, hi] x median`` and
    averages the RGB of the rest; ``mean`` averages all samples (for comparison).
 
-Visibility by occlusion queries (one ray per candidate texel and view, cast only for
-texels that already passed the cheap facing/image/mask tests) was chosen over rendering
-a depth map per view and comparing depths: its cost scales with the number of texels,
-not image pixels, and it has no depth-tolerance or pixel-footprint artefacts at
-silhouettes. Measured (2-core CPU, 25k-triangle mesh, 16 views of 1024^2): all
-occlusion queries of a 1024^2 texture take ~0.4 s per frame (~0.1 s at 512^2), a
-depth map alone ~31 ms per 1024^2 view (~0.5 s per frame). Only for very small
-images (e.g. 192^2) would depth maps be cheaper, and there both are negligible.
+Two implementations, selected by ``ProjectConfig.visibility``:
 
-Everything is vectorised over texels (in chunks of ``chunk`` texels to bound memory);
-the per-view loop is the only Python loop. Memory per frame is about
-``N_texels x N_views x 13`` bytes of samples plus one view's images at a time when
-``views`` is a generator (:func:`iter_frame_views`).
+- ``zbuffer`` (default): compiled numba kernels (:mod:`gsavatar.prep.zbuffer`). Per view a
+  triangle-id buffer of the posed mesh is rasterized on the camera's pinhole grid (cropped to
+  the mesh's bounding box; back faces culled when the mesh is closed); a texel is visible
+  unless the front triangle at its nearest grid pixel -- other than its own triangle and their
+  1-ring -- lies more than ``occlusion_eps`` in front of it along its exact ray (plane
+  depth). Sampling and fusion run texel-block by texel-block (Morton order of the texels, so a
+  block is a compact image patch in every view) with the samples in cache. Cost scales with
+  image pixels (rasterization) and texels x views, not with ray casting.
+- ``rays``: the numpy + open3d reference: one occlusion ray (``RaycastingScene.test_occlusions``)
+  per texel and view that passed the cheap tests, from ``occlusion_eps`` off the texel to the
+  camera centre. Exact at occluding contours; ~5x slower at 1024^2 (docs/prep.md).
+
+They agree except within about a pixel of occluding contours (tests/prep/test_project_uv_zbuffer.py).
+The z-buffer path keeps all views' images of a frame in memory (the fused kernel samples every
+view per texel block); the ray path holds ``N_texels x N_views x 13`` bytes of samples plus one
+view's images at a time when ``views`` is a generator (:func:`iter_frame_views`).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -70,11 +74,16 @@ class ProjectConfig:
     mask_threshold: float = 0.5
     """Foreground threshold on the [0, 1] mask."""
     occlusion_eps: float = 1e-3
-    """Metres the occlusion ray starts off the texel (towards the camera), to avoid self-hits on its own/adjacent triangles."""
+    """Occluders closer than this (metres, along the ray texel -> camera) do not hide a texel: the ``rays`` path starts
+    its ray this far off the texel, the ``zbuffer`` path tolerates this depth difference."""
     gutter_px: float = 1.0
     """Texels outside every UV triangle but within this distance (texels) of one are projected too (seam dilation); used when building the TexelMap."""
     chunk: int = 1 << 18
-    """Texels processed per vectorised batch (bounds temporary memory)."""
+    """Texels processed per vectorised batch (bounds temporary memory; ``rays`` path only)."""
+    visibility: Literal["zbuffer", "rays"] = "zbuffer"
+    """``zbuffer``: compiled per-texel kernels with one triangle-id/depth buffer per view (fast, the default);
+    ``rays``: the numpy + open3d occlusion-ray reference path. They agree except within ~1 pixel of
+    occluding contours (tests/prep/test_project_uv_zbuffer.py)."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.tex_size, int) or self.tex_size < 0:
@@ -90,6 +99,8 @@ class ProjectConfig:
             raise ValueError(f"min_cos must be in [-1, 1], got {self.min_cos}")
         if self.chunk < 1:
             raise ValueError(f"chunk must be >= 1, got {self.chunk}")
+        if self.visibility not in ("zbuffer", "rays"):
+            raise ValueError(f"visibility must be 'zbuffer' or 'rays', got {self.visibility!r}")
 
 
 class TexelFusion(NamedTuple):
@@ -125,12 +136,14 @@ def erode_mask(mask: np.ndarray | None, shape: tuple[int, int], erode_px: int, t
     """Binary foreground (``mask > threshold``) eroded by a ``erode_px`` square kernel. -> [H, W] bool."""
     if mask is None:
         return np.ones(shape, dtype=bool)
-    fg = (np.asarray(mask) > threshold).astype(np.uint8)
+    fg = np.asarray(mask) > threshold
     if erode_px > 1:
         import cv2
 
-        fg = cv2.erode(fg, np.ones((erode_px, erode_px), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=1)
-    return fg.astype(bool)
+        # bool is stored as 0/1 bytes: erode the uint8 view, read the 0/1 result back as bool (no copies)
+        fg = cv2.erode(fg.view(np.uint8), np.ones((erode_px, erode_px), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                       borderValue=1).view(bool)
+    return fg
 
 
 def _fov_r2_limit(cam: Camera) -> float:
@@ -313,6 +326,21 @@ def fuse_samples(rgb: np.ndarray, ok: np.ndarray, fusion: str = "median_band", b
 
 
 # --------------------------------------------------------------------------- projector
+@dataclass
+class _ZFrame:
+    """One frame's inputs of the z-buffer kernels (lists hold one entry per view with foreground)."""
+
+    P: np.ndarray  # [3, N] float64 texel points
+    Nrm: np.ndarray  # [3, N] float64 unit texel normals
+    num_views: int  # views consumed (including ones without foreground)
+    index: list[int]  # position of each kept view among all views
+    cams: list[np.ndarray]  # [CAM_FIELDS] float64 packed cameras
+    fgs: list[np.ndarray]  # [H*W] bool eroded foreground
+    imgs: list[np.ndarray]  # [H*W, 3] float32 or uint8
+    tri_ids: list[np.ndarray]  # [Hg, Wg] int32 front triangle (-1 empty)
+    planes: list[np.ndarray]  # [F, 4] float64 camera-space triangle planes
+
+
 class UVProjector:
     """Projects frames onto one texel map; per-texel lookups are precomputed once.
 
@@ -345,7 +373,17 @@ class UVProjector:
         self.bary = texel_map.bary.reshape(-1, 3)[self.texels].astype(np.float64)  # [N, 3]
         self._bary_soa = tuple(np.ascontiguousarray(self.bary[:, k]) for k in range(3))
         self._corner_soa = tuple(np.ascontiguousarray(self.corner_vids[:, k]) for k in range(3))
+        # z-buffer path: texels in Morton (Z-curve) order of their texel coordinates, so that a block of the
+        # fused kernel is a compact UV tile -> a compact surface patch -> a compact image patch in every view
+        ys, xs = np.divmod(self.texels, self.size)
+        self._zorder = np.argsort(_morton(ys, xs), kind="stable")  # [N] position in self.texels
+        self._z_texels = self.texels[self._zorder]
+        self._z_corners = np.ascontiguousarray(self.corner_vids[self._zorder])
+        self._z_bary = np.ascontiguousarray(self.bary[self._zorder])
+        self._z_tri = np.ascontiguousarray(tri[self._zorder], dtype=np.int32)  # [N] texel triangle (self test)
         self._r2 = {}
+        self._grids = {}
+        self._closed = is_closed(self.faces)  # back faces can be culled from the z-buffer
 
     @property
     def num_texels(self) -> int:
@@ -356,8 +394,8 @@ class UVProjector:
         P, Nrm = self._surface_soa(vertices, frame)
         return P.T, Nrm.T
 
-    def _surface_soa(self, vertices: np.ndarray, frame) -> tuple[np.ndarray, np.ndarray]:
-        """Texel points and unit normals as contiguous rows. -> [3, N], [3, N] float64."""
+    def _check_vertices(self, vertices: np.ndarray, frame) -> np.ndarray:
+        """Posed vertices as float64 [V, 3]; ValueError naming ``frame`` if mis-shaped, NaN/Inf or too few."""
         v = np.asarray(vertices, dtype=np.float64)
         if v.ndim != 2 or v.shape[1] != 3:
             raise ValueError(f"frame {frame}: posed vertices must be [V, 3], got {v.shape}")
@@ -366,6 +404,11 @@ class UVProjector:
             raise ValueError(f"frame {frame}: {int(bad.sum())} posed vertices are NaN/Inf (first: vertex {int(np.argmax(bad))})")
         if len(self.faces) and self.faces.max() >= len(v):
             raise ValueError(f"frame {frame}: faces reference vertex {self.faces.max()} but only {len(v)} posed vertices given")
+        return np.ascontiguousarray(v)
+
+    def _surface_soa(self, vertices: np.ndarray, frame) -> tuple[np.ndarray, np.ndarray]:
+        """Texel points and unit normals as contiguous rows. -> [3, N], [3, N] float64."""
+        v = self._check_vertices(vertices, frame)
         n = vertex_normals(v, self.faces)
         vT, nT = np.ascontiguousarray(v.T), np.ascontiguousarray(n.T)
         b0, b1, b2 = self._bary_soa
@@ -380,10 +423,13 @@ class UVProjector:
         Nrm *= np.where(good, 1.0 / np.where(good, length, 1.0), 0.0)
         return P, Nrm
 
-    def _view_ctx(self, view: View, frame) -> _ViewCtx | None:
+    def _view_ctx(self, view: View, frame, keep_uint8: bool = False, quad: bool = False) -> _ViewCtx | None:
+        """Checked view: image [H*W, 3] (float32 in [0, 1]; uint8 kept as is when ``keep_uint8``), eroded
+        foreground [H*W] bool (``quad``: :func:`~gsavatar.prep.zbuffer.quad_foreground`), camera centre and
+        distortion radius bound. None when the mask has no foreground."""
         cam, image, mask = view
         image = np.asarray(image)
-        if image.dtype == np.uint8:
+        if image.dtype == np.uint8 and not keep_uint8:
             image = image.astype(np.float32) / 255.0
         if image.ndim == 2:
             image = np.repeat(image[..., None], 3, axis=2)
@@ -391,18 +437,75 @@ class UVProjector:
             raise ValueError(f"frame {frame}: image of camera {cam.name!r} is {image.shape}, calibration says {cam.height}x{cam.width}x3")
         if mask is not None and np.asarray(mask).shape[:2] != (cam.height, cam.width):
             raise ValueError(f"frame {frame}: mask of camera {cam.name!r} is {np.asarray(mask).shape}, calibration says {cam.height}x{cam.width}")
-        fg = erode_mask(mask if mask is None or np.asarray(mask).ndim == 2 else np.asarray(mask)[..., 0],
-                        (cam.height, cam.width), self.config.erode_px, self.config.mask_threshold)
+        m = mask if mask is None or np.asarray(mask).ndim == 2 else np.asarray(mask)[..., 0]
+        if quad:
+            from gsavatar.prep.zbuffer import quad_foreground
+
+            fg = quad_foreground(m, (cam.height, cam.width), self.config.erode_px, self.config.mask_threshold)
+        else:
+            fg = erode_mask(m, (cam.height, cam.width), self.config.erode_px, self.config.mask_threshold)
         if not fg.any():
             return None
         key = (cam.name, tuple(np.asarray(cam.dist, dtype=np.float64).tolist()), cam.width, cam.height, tuple(cam.K.ravel().tolist()))
         if key not in self._r2:
             self._r2[key] = _fov_r2_limit(cam)
-        img = np.ascontiguousarray(image[..., :3], dtype=np.float32).reshape(-1, 3)
+        img = np.ascontiguousarray(image[..., :3], dtype=np.uint8 if image.dtype == np.uint8 else np.float32).reshape(-1, 3)
         return _ViewCtx(cam, img, fg.ravel(), np.asarray(cam.center, dtype=np.float64), self._r2[key])
 
+    def _zbuffer_views(self, vertices: np.ndarray, views: Iterable[View], frame, occlusion: bool = True) -> _ZFrame:
+        """Texel surface and every view's checked inputs and triangle-id buffer (:mod:`gsavatar.prep.zbuffer`).
+
+        Views are consumed one at a time and rasterized as they arrive; their images are kept (the
+        fused kernel samples all views per block of texels).
+        """
+        from gsavatar.prep import zbuffer as zb
+
+        zb.set_threads()
+        v = self._check_vertices(vertices, frame)
+        N = self.num_texels
+        P = np.empty((3, N))
+        Nrm = np.empty((3, N))
+        zb.surface(v, vertex_normals(v, self.faces), self._z_corners, self._z_bary, P, Nrm)
+        faces = self.faces
+        out = _ZFrame(P, Nrm, 0, [], [], [], [], [], [])
+        for view in views:
+            c = out.num_views
+            out.num_views += 1
+            ctx = self._view_ctx(view, frame, keep_uint8=True, quad=True)
+            if ctx is None or N == 0:  # all-background mask: no samples from this view
+                continue
+            cam = ctx.cam
+            key = (cam.name, tuple(np.asarray(cam.dist, dtype=np.float64).tolist()), cam.width, cam.height,
+                   tuple(cam.K.ravel().tolist()))
+            if key not in self._grids:
+                self._grids[key] = zb.pinhole_grid(cam, ctx.r2max)
+            grid = self._grids[key]
+            crop = (0, 0)
+            if occlusion and len(faces):
+                vc = zb.transform(v, np.ascontiguousarray(cam.R, dtype=np.float64),
+                                  np.ascontiguousarray(cam.T, dtype=np.float64).reshape(3))
+                x0, y0, x1, y1 = _raster_crop(vc, grid)
+                crop = (x0, y0)
+                shape = (max(y1 - y0 + 1, 1), max(x1 - x0 + 1, 1))
+                tri_id = np.full(shape, -1, np.int32)
+                planes = np.empty((len(faces), 4))
+                if x1 >= x0 and y1 >= y0:
+                    invz = np.zeros(shape, np.float32)
+                    zb.rasterize(vc, faces, grid.fx, grid.skew, grid.cx - x0, grid.fy, grid.cy - y0, ZNEAR,
+                                 self._closed, tri_id, invz, planes)
+            else:
+                tri_id, planes = np.full((1, 1), -1, np.int32), np.zeros((1, 4))
+            out.index.append(c)
+            out.cams.append(zb.pack_camera(cam, float(ctx.r2max), grid, crop))
+            out.fgs.append(ctx.fg)
+            out.imgs.append(ctx.image)
+            out.tri_ids.append(tri_id)
+            out.planes.append(planes)
+        return out
+
     def _collect(self, vertices: np.ndarray, views: Iterable[View], frame, occlusion: bool = True):
-        """Per-view (rgb [N,3] float32, ok [N] bool) of every projected texel (None for views without foreground)."""
+        """Per-view (rgb [N,3] float32, ok [N] bool) of every projected texel (None for views without
+        foreground); the ``rays`` reference path."""
         P, Nrm = self._surface_soa(vertices, frame)
         scene = self._scene(vertices) if occlusion else None
         N = P.shape[1]
@@ -428,6 +531,21 @@ class UVProjector:
         in the order of :attr:`texels`, C = number of views (including ones that saw nothing).
         """
         N = self.num_texels
+        if self.config.visibility == "zbuffer":
+            from gsavatar.prep import zbuffer as zb
+
+            zf = self._zbuffer_views(vertices, views, frame, occlusion)
+            rgb = np.zeros((N, zf.num_views, 3), np.float32)
+            ok = np.zeros((N, zf.num_views), bool)
+            for k, c in enumerate(zf.index):
+                r = np.zeros((N, 3), np.float32)
+                o = np.zeros(N, bool)
+                zb.sample_view(zf.P, zf.Nrm, self._z_tri, self.faces, zf.cams[k], zf.fgs[k], zf.imgs[k], zf.imgs[k].dtype == np.uint8,
+                               occlusion, zf.tri_ids[k], zf.planes[k], float(self.config.occlusion_eps),
+                               float(self.config.min_cos), r, o)
+                rgb[self._zorder, c] = np.where(o[:, None], r, np.float32(0))
+                ok[self._zorder, c] = o
+            return rgb, ok
         got = self._collect(vertices, views, frame, occlusion)
         rgb = np.zeros((N, len(got), 3), np.float32)
         ok = np.zeros((N, len(got)), bool)
@@ -451,6 +569,8 @@ class UVProjector:
         Raises ValueError naming ``frame`` for NaN/Inf posed vertices or mis-sized images.
         """
         cfg = self.config
+        if cfg.visibility == "zbuffer":
+            return self._project_zbuffer(vertices, views, frame)
         got = [g for g in self._collect(vertices, views, frame) if g is not None]
         S = self.size
         texture = np.zeros((S * S, 3), dtype=np.float32)
@@ -467,6 +587,88 @@ class UVProjector:
         valid = count > 0
         texture[~valid] = 0.0
         return TexelFusion(texture.reshape(S, S, 3), count.reshape(S, S), seen.reshape(S, S), valid.reshape(S, S))
+
+
+    def _project_zbuffer(self, vertices: np.ndarray, views: Iterable[View], frame) -> TexelFusion:
+        """:meth:`project` by the compiled kernels (``visibility="zbuffer"``)."""
+        from numba.typed import List
+
+        from gsavatar.prep import zbuffer as zb
+
+        cfg = self.config
+        zf = self._zbuffer_views(vertices, views, frame)
+        N = self.num_texels
+        col = np.zeros((N, 3), np.float32)
+        cnt = np.zeros(N, np.int64)
+        sn = np.zeros(N, np.int64)
+        if zf.index and N:
+            u8 = all(im.dtype == np.uint8 for im in zf.imgs)
+            imgs = zf.imgs if u8 else [im if im.dtype == np.float32 else im.astype(np.float32) / np.float32(255)
+                                       for im in zf.imgs]
+            F = max(p.shape[0] for p in zf.planes)
+            planes = np.zeros((len(zf.planes), F, 4))
+            for k, p in enumerate(zf.planes):
+                planes[k, :len(p)] = p
+            zb.project_frame(zf.P, zf.Nrm, self._z_tri, self.faces, np.stack(zf.cams), List(zf.fgs), List(imgs), u8, True,
+                             List(zf.tri_ids), planes, float(cfg.occlusion_eps), float(cfg.min_cos),
+                             cfg.fusion == "median_band", float(cfg.band[0]), float(cfg.band[1]), BLOCK, col, cnt, sn)
+        S = self.size
+        texture = np.zeros((S * S, 3), dtype=np.float32)
+        count = np.zeros(S * S, dtype=np.uint8)
+        seen = np.zeros(S * S, dtype=np.uint8)
+        texture[self._z_texels] = col
+        count[self._z_texels] = np.minimum(cnt, 255)
+        seen[self._z_texels] = np.minimum(sn, 255)
+        valid = count > 0
+        return TexelFusion(texture.reshape(S, S, 3), count.reshape(S, S), seen.reshape(S, S), valid.reshape(S, S))
+
+
+def is_closed(faces: np.ndarray) -> bool:
+    """True when every directed edge (a, b) of faces [F, 3] occurs once and its reverse (b, a) once: a closed,
+    consistently oriented surface (each edge shared by exactly two triangles traversing it in opposite directions)."""
+    f = np.asarray(faces, np.int64)
+    if f.size == 0:
+        return False
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    n = int(f.max()) + 1
+    fwd = np.sort(e[:, 0] * n + e[:, 1])
+    if np.any(fwd[1:] == fwd[:-1]):
+        return False
+    rev = np.sort(e[:, 1] * n + e[:, 0])
+    return bool(np.array_equal(fwd, rev))
+
+
+def _raster_crop(vc: np.ndarray, grid) -> tuple[int, int, int, int]:
+    """Inclusive pixel box (x0, y0, x1, y1) of the grid that the mesh can cover: the projected vertices'
+    bounding box plus one pixel, clipped to the grid (x1 < x0 when it misses the grid); the whole grid
+    when a vertex is closer than ZNEAR (clipped triangles reach past their vertices). vc [V, 3] camera space."""
+    Wg, Hg = grid.width, grid.height
+    if not np.all(vc[:, 2] >= ZNEAR):
+        return 0, 0, Wg - 1, Hg - 1
+    x = vc[:, 0] / vc[:, 2]
+    y = vc[:, 1] / vc[:, 2]
+    u = grid.fx * x + grid.skew * y + grid.cx
+    w = grid.fy * y + grid.cy
+    x0, x1 = max(math.floor(u.min()) - 1, 0), min(math.ceil(u.max()) + 1, Wg - 1)
+    y0, y1 = max(math.floor(w.min()) - 1, 0), min(math.ceil(w.max()) + 1, Hg - 1)
+    return int(x0), int(y0), int(x1), int(y1)
+
+
+def _morton(y: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Z-order (Morton) code of non-negative integer coordinates < 2^16. y, x [N] -> [N] int64."""
+    def spread(v: np.ndarray) -> np.ndarray:
+        v = np.asarray(v, np.int64) & 0xFFFF
+        v = (v | (v << 8)) & 0x00FF00FF
+        v = (v | (v << 4)) & 0x0F0F0F0F
+        v = (v | (v << 2)) & 0x33333333
+        return (v | (v << 1)) & 0x55555555
+    return (spread(y) << 1) | spread(x)
+
+
+ZNEAR = 1e-6
+"""Camera-space depth (metres) below which the z-buffer clips triangles (the texel test is ``z > 1e-6`` too)."""
+BLOCK = 1024
+"""Texels per block of the fused z-buffer kernel (its samples, C x BLOCK x 13 bytes, stay in cache)."""
 
 
 def prepare_texel_map(template: Template, config: ProjectConfig | None = None,
