@@ -8,7 +8,9 @@ part of a step) in fresh subprocesses, alternating old/new ``--repeats`` times s
 machine's load; each measurement times ``--steps`` steps after ``--warmup`` steps. The new code's
 view cache (decoded images kept in memory) is filled before timing, which is the steady state of
 a run after its first pass over the views; ``--cold`` times it without (first pass).
-Prints one line per measurement and the median ratio new/old. The baseline's source comes from
+Prints one line per measurement and the median ratio new/old, of wall-clock steps/s and of steps per
+CPU-second of the process (the latter is less sensitive to other jobs on a shared box; with
+``--threads 1`` both measure the same work). The baseline's source comes from
 ``git worktree`` into a temporary folder (removed at the end).
 """
 
@@ -26,7 +28,10 @@ from pathlib import Path
 CHILD = r"""
 import json, sys, time, tempfile, inspect
 import torch
-from gsavatar.runs.config import TrainConfig
+try:
+    from gsavatar.runs.config import TrainConfig
+except ImportError:  # code before the runs/ package (e.g. f1bc3d8)
+    from gsavatar.train.config import TrainConfig
 from gsavatar.train.trainer import Trainer
 a = json.loads(sys.argv[1])
 kw = dict(dataset=a["dataset"], out=tempfile.mkdtemp(prefix="bench_step_"), preset=a["preset"], lpips="off",
@@ -39,21 +44,23 @@ if "cache_views" in fields and not a["cold"]:
 tr.cfg = type(tr.cfg)(**{**tr.cfg.__dict__, "max_steps_this_run": a["warmup"]})
 tr.train()
 tr.cfg = type(tr.cfg)(**{**tr.cfg.__dict__, "max_steps_this_run": a["steps"]})
-t0 = time.perf_counter()
+t0, c0 = time.perf_counter(), time.process_time()
 tr.train()
-dt = time.perf_counter() - t0
-print(json.dumps({"steps_per_s": a["steps"] / dt, "threads": torch.get_num_threads()}))
+dt, dc = time.perf_counter() - t0, time.process_time() - c0
+print(json.dumps({"steps_per_s": a["steps"] / dt, "cpu_steps_per_s": a["steps"] / dc, "threads": torch.get_num_threads()}))
 """
 
 
-def measure(src: Path, args: argparse.Namespace) -> float:
+def measure(src: Path, args: argparse.Namespace) -> tuple[float, float]:
+    """(steps per wall-clock second, steps per CPU second of the process)"""
     env = {**os.environ, "PYTHONPATH": str(src), "OMP_NUM_THREADS": str(args.threads)}
     payload = json.dumps({"dataset": str(args.dataset), "preset": args.preset, "steps": args.steps,
                           "warmup": args.warmup, "cold": args.cold})
     r = subprocess.run([sys.executable, "-c", CHILD, payload], env=env, capture_output=True, text=True)
     if r.returncode != 0:
         raise SystemExit(f"benchmark child failed ({src}):\n{r.stderr[-3000:]}")
-    return json.loads(r.stdout.strip().splitlines()[-1])["steps_per_s"]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    return out["steps_per_s"], out["cpu_steps_per_s"]
 
 
 def main() -> None:
@@ -77,14 +84,18 @@ def main() -> None:
             old, new = [], []
             for i in range(args.repeats):
                 old.append(measure(wt / "src", args))
-                print(f"[bench] old ({args.baseline}) run {i}: {old[-1]:.3f} steps/s", flush=True)
+                print(f"[bench] old ({args.baseline}) run {i}: {old[-1][0]:.3f} steps/s, "
+                      f"{old[-1][1]:.3f} steps per CPU-second", flush=True)
                 new.append(measure(repo / "src", args))
-                print(f"[bench] new (working tree) run {i}: {new[-1]:.3f} steps/s", flush=True)
+                print(f"[bench] new (working tree) run {i}: {new[-1][0]:.3f} steps/s, "
+                      f"{new[-1][1]:.3f} steps per CPU-second", flush=True)
         finally:
             subprocess.run(["git", "-C", str(repo), "worktree", "remove", "--force", str(wt)], capture_output=True)
+    med = [[statistics.median(r[k] for r in runs) for k in (0, 1)] for runs in (old, new)]
     res = {"preset": args.preset, "threads": args.threads, "steps": args.steps, "baseline": args.baseline,
-           "old_steps_per_s": statistics.median(old), "new_steps_per_s": statistics.median(new),
-           "ratio": statistics.median(new) / statistics.median(old), "cache": "cold" if args.cold else "warm"}
+           "old_steps_per_s": med[0][0], "new_steps_per_s": med[1][0], "ratio": med[1][0] / med[0][0],
+           "old_steps_per_cpu_s": med[0][1], "new_steps_per_cpu_s": med[1][1], "cpu_ratio": med[1][1] / med[0][1],
+           "cache": "cold" if args.cold else "warm"}
     print(json.dumps(res))
     if args.json:
         args.json.write_text(json.dumps(res, indent=1) + "\n")
