@@ -40,7 +40,8 @@ def available() -> bool:
 if numba is not None:
 
     @numba.njit(parallel=True, cache=False, fastmath=False)
-    def _forward_kernel(params, colors, tile_ids, offsets, counts, width, height, tile_size, out, stop, counters):
+    def _forward_kernel(params, skip_sigma, colors, tile_ids, offsets, counts, width, height, tile_size, out, stop,
+                        counters):
         # params [Q, 6] (x, y, a, b, c, opacity), colors [Q, D] in tile-list order;
         # out [n_pix, D + 1] (features, alpha), stop [n_pix] one past the last entry walked,
         # counters [n_tiles, 2]: (pixel, entry) pairs walked and pairs that contributed (stats).
@@ -70,6 +71,8 @@ if numba is not None:
                         dx = params[q, 0] - pcx
                         dy = params[q, 1] - pcy
                         sigma = 0.5 * (params[q, 2] * dx * dx + params[q, 4] * dy * dy) + params[q, 3] * dx * dy
+                        if sigma > skip_sigma[q]:  # alpha < 1/255 for sure: no exp (most pairs of a tile)
+                            continue
                         alpha = min(MAX_ALPHA, params[q, 5] * math.exp(-sigma))
                         if alpha < ALPHA_THRESHOLD:
                             continue
@@ -91,7 +94,8 @@ if numba is not None:
             counters[t, 1] = used
 
     @numba.njit(parallel=True, cache=False, fastmath=False)
-    def _backward_kernel(params, colors, tile_ids, offsets, width, height, tile_size, stop, out, g_pix, g_q):
+    def _backward_kernel(params, skip_sigma, colors, tile_ids, offsets, width, height, tile_size, stop, out, g_pix,
+                         g_q):
         # out [n_pix, D + 1] the forward's float64 (features, alpha); g_pix [n_pix, D + 1] dL/d(features, alpha);
         # g_q [Q, 6 + D] per list entry (zero-initialised).
         D = colors.shape[1]
@@ -133,6 +137,8 @@ if numba is not None:
                         c = params[q, 4]
                         o = params[q, 5]
                         sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+                        if sigma > skip_sigma[q]:
+                            continue
                         raw = o * math.exp(-sigma)
                         alpha = min(MAX_ALPHA, raw)
                         if alpha < ALPHA_THRESHOLD:
@@ -159,6 +165,19 @@ if numba is not None:
                         T = next_T
 
 
+def _skip_sigma(params: np.ndarray) -> np.ndarray:
+    """Per list entry, the sigma above which ``opacity exp(-sigma) < 1/255`` for sure. [Q, 6] -> [Q] float64
+
+    ``o e^-s < 1/255  <=>  s > log(255 o)``; the margin keeps rounding at the boundary to the exact
+    test (the exp), so results are unchanged while most pairs of a tile skip the exp.
+    """
+    o = params[:, 5].astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        thr = np.log(255.0 * o)
+    thr = np.where(o > 0, thr, -np.inf) + 1e-6  # o <= 0: alpha = 0, always skipped
+    return np.where(np.isnan(o), np.inf, thr)  # NaN opacity: never skipped early (the exact test decides)
+
+
 class CompositeNumba(torch.autograd.Function):
     """Forward/backward through the compiled kernels; inputs in tile-list order (see :func:`composite`)."""
 
@@ -174,7 +193,7 @@ class CompositeNumba(torch.autograd.Function):
         stop = np.zeros(n_pix, np.int64)
         counters = np.zeros((tid.shape[0], 2), np.int64)
         if tid.shape[0]:
-            _forward_kernel(p, col, tid, off, cnt, width, height, tile_size, out, stop, counters)
+            _forward_kernel(p, _skip_sigma(p), col, tid, off, cnt, width, height, tile_size, out, stop, counters)
         ctx.save_for_backward(params_q, colors_q)
         ctx.setup = (tid, off, stop, out, width, height, tile_size)
         if stats_out is not None:
@@ -199,6 +218,6 @@ class CompositeNumba(torch.autograd.Function):
         if tid.shape[0]:
             p = params_q.detach().cpu().contiguous().numpy()
             col = colors_q.detach().cpu().contiguous().numpy()
-            _backward_kernel(p, col, tid, off, width, height, tile_size, stop, out, g_pix, g_q)
+            _backward_kernel(p, _skip_sigma(p), col, tid, off, width, height, tile_size, stop, out, g_pix, g_q)
         g = torch.from_numpy(g_q).to(device=params_q.device, dtype=params_q.dtype)
         return g[:, :6], g[:, 6:], None, None, None, None, None, None, None, None
