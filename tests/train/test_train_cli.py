@@ -229,8 +229,13 @@ def test_checkpoint_of_an_older_model_config_resumes(tmp_path):
     save_checkpoint(ckpt, step=3, config={"model": old}, modules={"m": torch.nn.Linear(1, 1)}, optimizer=None)
     state = load_checkpoint(ckpt, {"model": now}, ("model",), defaults={"model": dataclass_defaults(ModelConfig)})
     assert state["step"] == 3
+    # the run's own config.json may predate a field too (load_run compares it with a newer checkpoint)
+    save_checkpoint(ckpt, step=4, config={"model": now}, modules={"m": torch.nn.Linear(1, 1)}, optimizer=None)
+    state = load_checkpoint(ckpt, {"model": old}, ("model",), defaults={"model": dataclass_defaults(ModelConfig)})
+    assert state["step"] == 4
     with pytest.raises(SchemaError, match="config.model"):  # without defaults: the old behaviour
-        load_checkpoint(ckpt, {"model": now}, ("model",))
+        load_checkpoint(ckpt, {"model": old}, ("model",))
+    save_checkpoint(ckpt, step=3, config={"model": old}, modules={"m": torch.nn.Linear(1, 1)}, optimizer=None)
     with pytest.raises(SchemaError, match="config.model"):  # a field that really differs
         load_checkpoint(ckpt, {"model": {**now, "anchor_sh0": True}}, ("model",),
                         defaults={"model": dataclass_defaults(ModelConfig)})

@@ -78,8 +78,9 @@ def load_checkpoint(path: str | Path, config: dict | None = None, strict_config_
     if config is not None:
         for key in strict_config_keys:
             a, b = _get(saved, key), _get(config, key)
-            if defaults and key in defaults and isinstance(a, dict):
-                a = {**defaults[key], **a}
+            if defaults and key in defaults:  # fields added since either side was written: their defaults
+                a = {**defaults[key], **a} if isinstance(a, dict) else a
+                b = {**defaults[key], **b} if isinstance(b, dict) else b
             if a != b:
                 raise SchemaError(path, f"config.{key}", f"checkpoint has {a!r}, this run has {b!r}: it belongs to another configuration")
     return state
