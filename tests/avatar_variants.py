@@ -45,7 +45,8 @@ def make_variant(parts, name: str, center_correctives: bool = True,
                  dtype: torch.dtype = torch.float32) -> GaussianAvatar:
     """The variant ``name`` of the tiny preset with non-zero corrective bases / decoder (seeded)."""
     rig, h, masks, pl, pg = parts
-    base = model_preset("tiny", uv_decoder_size=32, uv_decoder_channels=32)
+    # the model as it was when the fingerprints below were stored: without the later opt-in latent colour map
+    base = model_preset("tiny", uv_decoder_size=32, uv_decoder_channels=32).replace(latent_sh0=False)
     if not center_correctives:
         base = base.replace(input_norm=False, center_correctives=False, latent_norm=False)
     torch.manual_seed(3)  # the UV decoder's init draws from the global generator

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from avatar_variants import CALLS, VARIANT_NAMES, build_parts, fingerprints, make_inputs, make_variant
+from avatar_variants import CALLS, FACE_DIM, VARIANT_NAMES, build_parts, fingerprints, make_inputs, make_variant
 from gsavatar.data_schema.rig import BODY_GROUPS
 from gsavatar.geometry.lbs import skinning_transforms
 from gsavatar.models import GaussianAvatar, ModelConfig, model_preset, variant_config
@@ -214,3 +214,27 @@ def test_checkpoints_of_before_the_refactor_load(parts):
         fresh.eval(), av.eval()
         for a, b in zip(fresh(*args), av(*args)):
             assert torch.equal(a, b)
+
+
+def test_latent_colour_map_adds_the_interpolated_latent_term(parts):
+    """ModelConfig.latent_sh0: the SH0 pre-activation gains ``interp(l_a @ Λ^l_a)`` and nothing else changes."""
+    av_off = make_variant(parts, "ours")
+    cfg = av_off.config.replace(latent_sh0=True)
+    rig, h, masks, pl, pg = parts
+    torch.manual_seed(3)
+    av_on = type(av_off)(h, masks, rig, pl, pg, cfg, face_dim=FACE_DIM, seed=1)
+    av_on.load_state_dict({**av_off.state_dict(), "sh0_latent_basis": torch.zeros_like(av_on.sh0_latent_basis)})
+    pose, rr, rt, face, lat = make_inputs(parts)
+    base = av_on(pose, rr, rt, face, lat)
+    torch.testing.assert_close(base.sh, av_off(pose, rr, rt, face, lat).sh)  # zero map: the same avatar
+    g = torch.Generator().manual_seed(9)
+    with torch.no_grad():
+        av_on.sh0_latent_basis.copy_(0.3 * torch.randn(av_on.sh0_latent_basis.shape, generator=g))
+    out = av_on(pose, rr, rt, face, lat)
+    d_a = torch.einsum("bal,ald->bad", lat, av_on.sh0_latent_basis)
+    d_g = torch.einsum("gk,bgkd->bgd", av_on.gauss_anchor_w, d_a[:, av_on.gauss_anchor_idx])  # naive gather
+    pre = torch.atanh((base.sh[:, :, 0] * gm.SH_C0 / 0.5).clamp(-1 + 1e-6, 1 - 1e-6))
+    want = torch.tanh(pre + d_g) * (0.5 / gm.SH_C0)
+    torch.testing.assert_close(out.sh[:, :, 0], want, rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(out.means, base.means)
+    torch.testing.assert_close(av_on(pose, rr, rt, face, None).sh, av_off(pose, rr, rt, face, None).sh)  # no latent

@@ -18,7 +18,7 @@ import numpy as np
 from gsavatar.metrics.lpips import LPIPSMode
 from gsavatar.models.config import ModelConfig, PresetName, VariantName, model_preset, variant_config
 from gsavatar.utils.errors import SchemaError
-from gsavatar.utils.jsonio import config_to_json, is_int, is_number
+from gsavatar.utils.jsonio import config_to_json, dataclass_defaults, is_int, is_number
 
 
 @dataclass
@@ -158,6 +158,22 @@ def resolve(cfg: TrainConfig) -> TrainConfig:
 def model_config(cfg: TrainConfig) -> ModelConfig:
     """The model configuration of a run: its preset with its variant applied."""
     return variant_config(model_preset(cfg.preset), cfg.variant)
+
+
+def model_config_from_json(d: dict, file: str | Path) -> ModelConfig:
+    """The model configuration a run was trained with, from its ``config.json`` ``model`` object: fields
+    added since then take their defaults (which keep the old behaviour), so a run keeps loading after a
+    preset changes (e.g. the CPU recipe). Raises SchemaError(file, ``model...``) on unknown or bad fields."""
+    if not isinstance(d, dict):
+        raise SchemaError(file, "model", f"expected an object, got {type(d).__name__}")
+    names = {f.name for f in dataclasses.fields(ModelConfig)}
+    unknown = sorted(set(d) - names)
+    if unknown:
+        raise SchemaError(file, f"model.{unknown[0]}", "unknown field (a newer gsavatar wrote this run?)")
+    try:
+        return ModelConfig(**{**dataclass_defaults(ModelConfig), **d})
+    except (TypeError, ValueError) as e:
+        raise SchemaError(file, "model", str(e)) from None
 
 
 def check_train_config(cfg: TrainConfig) -> None:

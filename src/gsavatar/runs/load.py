@@ -18,7 +18,7 @@ from gsavatar.models.config import ModelConfig
 from gsavatar.models.net import AvatarNet, build_net
 from gsavatar.models.predictor import AppearancePredictor, PredictorConfig
 from gsavatar.runs.checkpoint import check_same_dataset, load_checkpoint
-from gsavatar.runs.config import TrainConfig, check_train_config, from_json, model_config, resolve
+from gsavatar.runs.config import TrainConfig, check_train_config, from_json, model_config, model_config_from_json, resolve
 from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.jsonio import dataclass_defaults, read_json
 
@@ -61,7 +61,9 @@ def load_run(run: str | Path, device: str = "auto") -> LoadedRun:
     cfg = resolve(cfg)
     dev = pick_device(device)
     scene = load_scene(cfg.dataset)
-    net = build_net(scene, model_config(cfg), cfg.seed).to(dev)
+    # the model the run was trained with (config.json), not today's preset: presets may change between versions
+    mcfg = model_config_from_json(saved["model"], cfg_path) if "model" in saved else model_config(cfg)
+    net = build_net(scene, mcfg, cfg.seed).to(dev)
     ckpt = run / "checkpoints" / "latest.pt"
     state = load_checkpoint(ckpt, saved, strict_config_keys=("model",), defaults={"model": dataclass_defaults(ModelConfig)})
     check_same_dataset(ckpt, state["config"], cfg.dataset, dataset_fingerprint(cfg.dataset))
