@@ -2,6 +2,8 @@
 
 - :func:`basis_product`: per-point corrective products ``delta[b, n] = w[b, n] @ basis[n]``.
 - :func:`polar_rotation_fast`: the nearest rotation of many 3x3 blends, with a closed-form backward.
+- :func:`posed_quaternion_fast`: the posed rotation ``polar(M) R(q)`` as a quaternion, fused.
+- :func:`sparse_interpolate_fast`: k-NN interpolation ``out[b] = W @ values[b]`` with a sparse ``W``.
 
 Basis products:
 
@@ -223,6 +225,78 @@ if numba is not None:
             u1 = 0.5 * (-hw * py - hx * pz + hy * pw + hz * px)
             u2 = 0.5 * (-hw * pz + hx * py - hy * px + hz * pw)
             _polar_vjp(R, S, n, u0, u1, u2, g_M)
+
+
+if numba is not None:
+
+    @numba.njit(parallel=True, cache=False, fastmath=True)
+    def _csr_rows(crow, col, val, values, out):  # out[b, n] = sum_j val[j] values[b, col[j]] over row n
+        B = values.shape[0]
+        D = values.shape[2]
+        for n in numba.prange(crow.shape[0] - 1):
+            for b in range(B):
+                for d in range(D):
+                    out[b, n, d] = 0
+                for j in range(crow[n], crow[n + 1]):
+                    w = val[j]
+                    m = col[j]
+                    for d in range(D):
+                        out[b, n, d] += w * values[b, m, d]
+
+
+def _csr_parts(matrix: Tensor) -> tuple:
+    """(crow, col, val) of a coalesced sparse COO ``[N, M]`` matrix and of its transpose, as numpy arrays;
+    computed once per matrix object (the avatar caches its interpolation matrices)."""
+    parts = getattr(matrix, "_gsavatar_csr", None)
+    if parts is None:
+        idx = matrix.indices().numpy()
+        val = matrix.values().detach().numpy()
+        N, M = matrix.shape
+        out = []
+        for rows, cols, n in ((idx[0], idx[1], N), (idx[1], idx[0], M)):
+            order = np.lexsort((cols, rows))
+            crow = np.zeros(n + 1, np.int64)
+            np.cumsum(np.bincount(rows, minlength=n), out=crow[1:])
+            out.append((crow, np.ascontiguousarray(cols[order]), np.ascontiguousarray(val[order])))
+        parts = (*out[0], *out[1])
+        matrix._gsavatar_csr = parts
+    return parts
+
+
+class _SparseInterp(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, values: Tensor, matrix: Tensor) -> Tensor:
+        set_threads()
+        crow, col, val, tcrow, tcol, tval = _csr_parts(matrix)
+        v = values.detach().contiguous().numpy()
+        out = np.empty((v.shape[0], crow.shape[0] - 1, v.shape[2]), v.dtype)
+        _csr_rows(crow, col, val.astype(v.dtype, copy=False), v, out)
+        ctx.parts = (tcrow, tcol, tval)
+        return torch.from_numpy(out)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: Tensor):
+        tcrow, tcol, tval = ctx.parts
+        set_threads()
+        g = grad.detach().contiguous().numpy()
+        out = np.empty((g.shape[0], tcrow.shape[0] - 1, g.shape[2]), g.dtype)
+        _csr_rows(tcrow, tcol, tval.astype(g.dtype, copy=False), g, out)  # W^T g: rows of the transpose
+        return torch.from_numpy(out), None
+
+
+def sparse_interpolate_fast(values: Tensor, matrix: Tensor) -> Tensor | None:
+    """``out[b] = matrix @ values[b]`` for a coalesced sparse COO ``[N, M]`` matrix (constant: no gradient),
+    compiled row loops forward and over the transpose's rows backward; None where it does not apply
+    (not CPU float32/float64 or numba missing: use ``torch.sparse.mm``, its oracle).
+
+    values [B, M, D] -> [B, N, D]
+    """
+    if (numba is None or values.device.type != "cpu" or values.dtype not in (torch.float32, torch.float64)
+            or matrix.layout != torch.sparse_coo or not matrix.is_coalesced() or matrix.requires_grad
+            or values.shape[0] == 0):
+        return None
+    return _SparseInterp.apply(values, matrix)
 
 
 class _BasisProduct(torch.autograd.Function):
