@@ -56,4 +56,7 @@ echo "Turntable video:                  $OUT/run_ours/turntable.mp4"
 echo "Driven test sequence (predictor): $OUT/drive_test/drive.mp4, metrics.json, stability.png"
 echo "Latent sources on one test frame: $OUT/latent_sources.png (ground truth | encoder | predictor | mean latent)"
 [ "$STUDY" = 1 ] && echo "Results table (all rows):         $OUT/results.md, results.json  (drives in $OUT/drive/)"
+echo
+echo "Watch it live in a browser (127.0.0.1, Ctrl-C to stop):"
+echo "  .venv/bin/avatar-drive --run $OUT/run_ours --motion $OUT/capture --split test --view"
 exit 0
