@@ -179,3 +179,38 @@ def test_import_prepare_train_and_drive_from_bvh_and_amass(tmp_path, capsys):
     assert drive_main([*common, "--motion", str(amass), "--out", str(tmp_path / "d4")]) == 0
     info = json.loads((tmp_path / "d4" / "drive.json").read_text())
     assert info["frames"] == 4 and info["source_fps"] == 60.0 and info["fps"] == 30.0 and info["motion_warnings"] == []
+
+
+@pytest.mark.slow  # ~60-100 s each on 2 shared cores
+@pytest.mark.parametrize("layout", ["avatarrex", "actorshq"])
+def test_other_layouts_prepare_train_and_drive(layout, tmp_path):
+    """The other two layouts end to end: import -> prep all -> train (tiny, 3 steps) -> drive from a BVH."""
+    from gsavatar.data_schema import load_capture
+    from gsavatar.prep.cli import main as prep_main
+    from gsavatar.train.cli import main as train_main
+    from importers.test_layouts import PREP_ARGS, make_source, run_import
+    from motion.test_retarget_rigs import SPECS, bvh_from_spec
+
+    model_path = write_fake_smplx(tmp_path / "smplx" / "SMPLX_NEUTRAL.npz", rings=4, segs=8, uv=True)
+    src = tmp_path / "src"
+    src.mkdir()
+    make_source(src, layout, model_path)
+    cap, ds, run = tmp_path / "cap", tmp_path / "ds", tmp_path / "run"
+    assert run_import(layout, src, model_path, cap) == 0
+    assert prep_main(["all", "--capture", str(cap), "--out", str(ds), *PREP_ARGS]) == 0
+    assert train_main(["avatar", "--dataset", str(ds), "--out", str(run), "--preset", "tiny", "--steps", "3",
+                       "--lpips", "off", "--image-scale", "0.5", "--no-evaluate"]) == 0
+    from gsavatar.models.predictor import PredictorConfig
+    from gsavatar.train.predictor import PredictorTrainConfig, train_predictor
+
+    model = PredictorConfig(history=4, width=16, heads=2, ff=32, token_hidden=8, initial_hidden=16)
+    train_predictor(run, PredictorTrainConfig(steps=1, batch_size=1, window=2, model=model), device="cpu", evaluate=False)
+    heads = load_capture(cap).rig.heads().astype(np.float64)
+    bvh = bvh_from_spec(tmp_path / "smplx_names.bvh", SPECS["smplx"][0][:22], heads, F=6)
+    out = tmp_path / "drive"
+    assert drive_main(["--run", str(run), "--cameras", "orbit", "--orbit-views", "1", "--orbit-size", "32",
+                       "--lpips", "off", "--device", "cpu", "--motion", str(bvh), "--count", "2",
+                       "--out", str(out)]) == 0
+    info = json.loads((out / "drive.json").read_text())
+    assert info["frames"] == 2
+    assert np.abs(np.load(out / "latents.npz")["pose"]).max() > 0.1  # the BVH drives the imported rig
