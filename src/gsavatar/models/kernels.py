@@ -87,6 +87,15 @@ if numba is not None:
             if delta <= tol:
                 break
 
+    @numba.njit(cache=False, inline="always")
+    def _store_polar(x, M, n, R, S):
+        # R[n] = x (the polar factor), S[n] = R^T M[n] (its symmetric partner, kept for the backward)
+        for i in range(9):
+            R[n, i] = x[i]
+        for i in range(3):
+            for j in range(3):
+                S[n, 3 * i + j] = x[i] * M[n, j] + x[3 + i] * M[n, 3 + j] + x[6 + i] * M[n, 6 + j]
+
     @numba.njit(parallel=True, cache=False)
     def _polar_forward(M, R, S, tol, max_iters):
         # M [N, 9] row-major blends with det > 0 -> R [N, 9] orthogonal polar factor, S [N, 9] = R^T M.
@@ -96,11 +105,7 @@ if numba is not None:
             for i in range(9):
                 x[i] = M[n, i]
             _newton_polar(x, cof, tol, max_iters)
-            for i in range(9):
-                R[n, i] = x[i]
-            for i in range(3):  # S = R^T M
-                for j in range(3):
-                    S[n, 3 * i + j] = x[i] * M[n, j] + x[3 + i] * M[n, 3 + j] + x[6 + i] * M[n, 6 + j]
+            _store_polar(x, M, n, R, S)
 
     @numba.njit(cache=False, inline="always")
     def _polar_vjp(R, S, n, u0, u1, u2, out):
@@ -161,11 +166,7 @@ if numba is not None:
             for i in range(9):
                 x[i] = M[n, i]
             _newton_polar(x, cof, tol, max_iters)
-            for i in range(9):
-                R[n, i] = x[i]
-            for i in range(3):
-                for j in range(3):
-                    S[n, 3 * i + j] = x[i] * M[n, j] + x[3 + i] * M[n, 3 + j] + x[6 + i] * M[n, 6 + j]
+            _store_polar(x, M, n, R, S)
             # Shepperd: the largest of 4w^2, 4x^2, 4y^2, 4z^2 decides the branch
             t0 = 1.0 + x[0] + x[4] + x[8]
             t1 = 1.0 + x[0] - x[4] - x[8]

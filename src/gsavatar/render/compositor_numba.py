@@ -39,6 +39,13 @@ def available() -> bool:
 
 if numba is not None:
 
+    @numba.njit(cache=False, inline="always")
+    def _tile_origin(tid, tiles_x, tiles_y, tile_size):
+        # global tile id (camera-major, then row, column) -> (camera, first column, first row)
+        cam = tid // (tiles_x * tiles_y)
+        rem = tid - cam * tiles_x * tiles_y
+        return cam, (rem % tiles_x) * tile_size, (rem // tiles_x) * tile_size
+
     @numba.njit(parallel=True, cache=False, fastmath=False)
     def _forward_kernel(params, skip_sigma, colors, tile_ids, offsets, counts, width, height, tile_size, out, stop,
                         counters):
@@ -49,11 +56,7 @@ if numba is not None:
         tiles_x = (width + tile_size - 1) // tile_size
         tiles_y = (height + tile_size - 1) // tile_size
         for t in numba.prange(tile_ids.shape[0]):
-            tid = tile_ids[t]
-            cam = tid // (tiles_x * tiles_y)
-            rem = tid - cam * tiles_x * tiles_y
-            x0 = (rem % tiles_x) * tile_size
-            y0 = (rem // tiles_x) * tile_size
+            cam, x0, y0 = _tile_origin(tile_ids[t], tiles_x, tiles_y, tile_size)
             start = offsets[t]
             end = start + counts[t]
             acc = np.zeros(D, np.float64)
@@ -102,11 +105,7 @@ if numba is not None:
         tiles_x = (width + tile_size - 1) // tile_size
         tiles_y = (height + tile_size - 1) // tile_size
         for t in numba.prange(tile_ids.shape[0]):
-            tid = tile_ids[t]
-            cam = tid // (tiles_x * tiles_y)
-            rem = tid - cam * tiles_x * tiles_y
-            x0 = (rem % tiles_x) * tile_size
-            y0 = (rem // tiles_x) * tile_size
+            cam, x0, y0 = _tile_origin(tile_ids[t], tiles_x, tiles_y, tile_size)
             start = offsets[t]
             for py in range(y0, min(y0 + tile_size, height)):
                 for px in range(x0, min(x0 + tile_size, width)):
