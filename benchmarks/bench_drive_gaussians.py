@@ -97,12 +97,13 @@ def measure(driver: Driver, motion, frames: int, warmup: int, sh0_only: bool, ti
         live.next(motion_inputs(motion, t % T), eye)
     live.reset_timings()
     times.clear()
-    tic = time.perf_counter()
+    tic, cpu = time.perf_counter(), time.process_time()
     for t in range(warmup, warmup + frames):
         live.next(motion_inputs(motion, t % T), eye)
-    total = time.perf_counter() - tic
+    total, cpu = time.perf_counter() - tic, time.process_time() - cpu
     av = driver.net.avatar
     return {"fps": frames / total, "ms_per_frame": 1e3 * total / frames, "gaussians": av.num_gaussians,
+            "frames_per_cpu_s": frames / cpu,
             "anchors": av.num_anchors, "hidden": list(av.config.hidden), "sh_degree": driver.sh_degree,
             "parts_s": dict(live.timings), "forward_parts_s": dict(times), "total_s": total, "frames": frames}
 
@@ -110,7 +111,8 @@ def measure(driver: Driver, motion, frames: int, warmup: int, sh0_only: bool, ti
 def report(label: str, r: dict) -> None:
     total = r["total_s"]
     print(f"\n{label}: {r['fps']:.1f} frames/s ({r['ms_per_frame']:.1f} ms/frame; {r['gaussians']} Gaussians, "
-          f"{r['anchors']} anchors, MLP {r['hidden']}, SH degree {r['sh_degree']}; {r['frames']} frames)")
+          f"{r['anchors']} anchors, MLP {r['hidden']}, SH degree {r['sh_degree']}; {r['frames']} frames; "
+          f"{r['frames_per_cpu_s']:.1f} frames per CPU-second of the process, less disturbed by other jobs)")
     p, f = r["parts_s"], r["forward_parts_s"]
     rows = [("predictor (latent source step)", p.get("predictor", 0.0)), ("avatar forward", p.get("avatar", 0.0))]
     rows += [("  " + k + (" (rest)" if k == "posing" else ""), f.get(k, 0.0)) for k in FORWARD_PARTS]

@@ -299,10 +299,11 @@ class LiveGaussians:
         d = self.driver
         tic = time.perf_counter()
         xc = d.check_inputs(self._offset(x))
-        av = d.net(xc.batch(latents.to(d.device) if d.has_latents else None), sh_degree=d.sh_degree).avatar
+        deg = 0 if self.sh0_only else d.sh_degree  # band 0 only: the avatar skips the higher bands' correctives
+        av = d.net(xc.batch(latents.to(d.device) if d.has_latents else None), sh_degree=deg).avatar
         t1 = time.perf_counter()
         e = None if self.sh0_only or eye is None else np.asarray(eye, np.float32)
-        cov, rgb = viewer_arrays(av.means[0], av.quats[0], av.scales[0], av.sh[0], e, d.sh_degree)
+        cov, rgb = viewer_arrays(av.means[0], av.quats[0], av.scales[0], av.sh[0], e, deg)
         t2 = time.perf_counter()
         out = ViewerGaussians(np.ascontiguousarray(av.means[0].float().cpu().numpy()), cov, rgb,
                               np.ascontiguousarray(av.opacities[0, :, None].float().cpu().numpy()))
