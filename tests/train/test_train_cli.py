@@ -141,6 +141,8 @@ def test_eval_reports_the_latent_gain_and_it_is_zero_when_latents_are_cut(tiny_d
     L = net.avatar.latent_in
     with torch.no_grad():
         net.avatar.pose_head.mlp.weights[0][:, -L:] = 0  # the anchor MLPs no longer see the latent
+        if net.avatar.sh0_latent_basis is not None:  # nor does the latent colour map (CPU recipe)
+            net.avatar.sh0_latent_basis.zero_()
     res = evaluate_run(tmp_path / "cut", 1, loaded=loaded)
     assert res["latent_gain_db"] == pytest.approx(0.0, abs=1e-9)
 
