@@ -298,3 +298,29 @@ def test_uint8_images_equal_float_images():
 def test_visibility_config_validated():
     with pytest.raises(ValueError, match="visibility"):
         ProjectConfig(visibility="raster")  # type: ignore[arg-type]
+
+
+def test_dataset_projected_before_the_zbuffer_keeps_its_method_and_id(tiny_capture, tiny_dataset, tmp_path, capsys):
+    """A dataset whose project-uv record predates ``visibility`` (ray cast by an older gsavatar) is complete:
+    re-running prep neither recomputes it (which would change the content id and strand every run trained
+    on it) nor records a new config; --force recomputes with the configured method."""
+    import json
+    import shutil
+
+    from gsavatar.data_schema.dataset import dataset_fingerprint
+    from gsavatar.prep.cli import main
+
+    ds = tmp_path / "dataset"
+    shutil.copytree(tiny_dataset, ds)
+    obj = json.loads((ds / "dataset.json").read_text())
+    assert obj["stages"]["project-uv"]["config"].pop("visibility") == "zbuffer"
+    (ds / "dataset.json").write_text(json.dumps(obj, indent=1))
+    before = dataset_fingerprint(ds)
+    args = ["project-uv", "--capture", str(tiny_capture), "--out", str(ds), "--workers", "1", "--project.tex-size", "128"]
+    capsys.readouterr()
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "keeping its ray-cast visibility" in out and "complete, skipping" in out
+    assert dataset_fingerprint(ds) == before
+    assert main([*args, "--force"]) == 0  # recomputed with the z-buffer and recorded as such
+    assert json.loads((ds / "dataset.json").read_text())["stages"]["project-uv"]["config"]["visibility"] == "zbuffer"

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from gsavatar.data_schema import Capture, SchemaError, load_capture
-from gsavatar.data_schema.dataset import ShardReader, stage_dir, stage_path
+from gsavatar.data_schema.dataset import ShardReader, read_dataset_json, stage_dir, stage_path
 from gsavatar.data_schema.hierarchy import Hierarchy
 from gsavatar.prep.common import StageArgs, run_frame_stage, run_single_file_stage, stage_config
 from gsavatar.prep.configs import (FitPcaConfig, LocalizeConfig, PoseTemplateConfig, ProjectConfig, ProjectUvConfig,
@@ -150,11 +150,28 @@ def check_project_uv(cap: Capture, cfg: ProjectUvConfig) -> None:
     check_mask_coverage(cap, cams)
 
 
+def recorded_before_visibility(root: Path) -> bool:
+    """Whether ``root`` holds project-uv output recorded before ``ProjectConfig.visibility`` existed (ray cast)."""
+    try:
+        rec = read_dataset_json(root)["stages"].get("project-uv")
+    except SchemaError:
+        return False
+    return isinstance(rec, dict) and isinstance(rec.get("config"), dict) and "visibility" not in rec["config"]
+
+
 def project_uv(args: StageArgs, cap: Capture, cfg: ProjectUvConfig, inputs: dict[str, str]) -> bool:
     proj = resolve_tex_size(cfg.project, cap)
     cams = projected_cameras(cap, cfg.cameras)
-    cfg_json = stage_config(proj)
-    return run_frame_stage("project-uv", args, {**cfg_json, "cameras": cams}, list(range(cap.num_frames)),
+    record = cfg_json = stage_config(proj)
+    if not args.force and recorded_before_visibility(Path(args.out)):
+        # Textures of an older gsavatar were ray cast. Recomputing them with the z-buffer would change the
+        # dataset's content id and strand every run trained on it, so the dataset keeps its method (also for
+        # frames still to do); --force recomputes everything with the configured one.
+        print("[project-uv] dataset projected before the z-buffer existed: keeping its ray-cast visibility "
+              "(--force recomputes with the z-buffer)")
+        cfg_json = {**cfg_json, "visibility": "rays"}
+        record = {k: v for k, v in cfg_json.items() if k != "visibility"}
+    return run_frame_stage("project-uv", args, {**record, "cameras": cams}, list(range(cap.num_frames)),
                            functools.partial(_project_shard, str(args.capture), str(args.out), cfg_json, cams),
                            inputs, functools.partial(frame_inputs, cap, cams=cams))
 
