@@ -16,7 +16,6 @@ with an untrained paper-size predictor. ``--json FILE`` also writes the numbers.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import functools
 import json
 import tempfile

@@ -21,7 +21,6 @@ import math
 
 import numpy as np
 import torch
-from torch import Tensor
 
 from gsavatar.utils.compiled import numba, set_threads
 
