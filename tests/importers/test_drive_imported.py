@@ -214,3 +214,27 @@ def test_other_layouts_prepare_train_and_drive(layout, tmp_path):
     info = json.loads((out / "drive.json").read_text())
     assert info["frames"] == 2
     assert np.abs(np.load(out / "latents.npz")["pose"]).max() > 0.1  # the BVH drives the imported rig
+
+
+@pytest.mark.slow  # ~60 s: xatlas unwrap, prep, 2 training steps
+def test_smplx_import_without_uvs_trains(tmp_path):
+    """Without the user's SMPL-X UV file uv-atlas unwraps the template with xatlas; sample-points must place
+    the points in that layout (it used to keep the template's missing UVs and training stopped)."""
+    from gsavatar.data_schema.hierarchy import Hierarchy
+    from gsavatar.prep.cli import main as prep_main
+    from gsavatar.train.cli import main as train_main
+    from importers.test_layouts import PREP_ARGS, make_source, run_import
+
+    model_path = write_fake_smplx(tmp_path / "smplx" / "SMPLX_NEUTRAL.npz", rings=4, segs=8, uv=False)
+    src = tmp_path / "src"
+    src.mkdir()
+    make_source(src, "thuman4", model_path)
+    cap, ds = tmp_path / "cap", tmp_path / "ds"
+    assert run_import("thuman4", src, model_path, cap) == 0
+    assert prep_main(["all", "--capture", str(cap), "--out", str(ds), *PREP_ARGS]) == 0
+    h = Hierarchy.load(ds / "sample_points" / "hierarchy.npz")
+    atlas = np.load(ds / "uv_atlas" / "atlas.npz")
+    assert h.anchors.uv is not None and np.isfinite(h.anchors.uv).all()
+    assert atlas["uvs"].shape[0] > 0
+    assert train_main(["avatar", "--dataset", str(ds), "--out", str(tmp_path / "run"), "--preset", "tiny",
+                       "--steps", "2", "--lpips", "off", "--image-scale", "0.5", "--no-evaluate"]) == 0

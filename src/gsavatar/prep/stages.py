@@ -223,8 +223,13 @@ def sample_points(args: StageArgs, cap: Capture, cfg: SamplePointsConfig, inputs
     counts = {k: v or auto[k] for k, v in given.items()}
 
     def produce() -> list[Path]:
+        from gsavatar.prep.uv_atlas import ensure_uvs
+
         print("[sample-points] " + ", ".join(f"{k} {v}" + ("" if given[k] else " (auto)") for k, v in counts.items()))
-        h = build_hierarchy(cap.template, counts["anchors"], counts["control"], counts["gaussians"], seed=cfg.seed)
+        # A template without UVs gets uv-atlas' unwrap (the same cached xatlas call, a function of the template
+        # alone): the points need UVs in the layout the textures are projected into.
+        template = ensure_uvs(cap.template, cache_dir=root / "uv_atlas" / "xatlas_cache")
+        h = build_hierarchy(template, counts["anchors"], counts["control"], counts["gaussians"], seed=cfg.seed)
         path = root / "sample_points" / "hierarchy.npz"
         h.save(path)
         return [path]
