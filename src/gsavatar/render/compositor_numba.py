@@ -8,7 +8,8 @@ stop are touched and nothing is padded. Tiles run in parallel (``numba.prange``)
 
 Backward re-walks each pixel's list once instead of storing per-pair state, applying gsplat's VJP
 front to back with ``behind_i = total - prefix_i`` (the torch oracle's cumsum form), where
-``total = sum_i w_i g.c_i`` is ``g . (output features, alpha)`` from the forward's float64 output. Gradients go to per list entry
+``total = sum_i w_i g.c_i`` is ``g . (output features, alpha)`` from the forward's float64 output.
+Gradients go to per list entry
 rows, which belong to exactly one tile, so parallel tiles never write the same row; torch then
 adds them up per instance.
 
@@ -45,6 +46,16 @@ if numba is not None:
         rem = tid - cam * tiles_x * tiles_y
         return cam, (rem % tiles_x) * tile_size, (rem // tiles_x) * tile_size
 
+    @numba.njit(cache=False, inline="always")
+    def _raw_alpha(params, skip_sigma, q, dx, dy):
+        # opacity exp(-sigma) of list entry q at offset (dx, dy) = mean - pixel centre; the forward and the
+        # backward walk must take the same decisions, so both use this. 0 where sigma > skip_sigma[q]: alpha
+        # < 1/255 for sure, no exp (most pairs of a tile).
+        sigma = 0.5 * (params[q, 2] * dx * dx + params[q, 4] * dy * dy) + params[q, 3] * dx * dy
+        if sigma > skip_sigma[q]:
+            return 0.0
+        return params[q, 5] * math.exp(-sigma)
+
     @numba.njit(parallel=True, cache=False, fastmath=False)
     def _forward_kernel(params, skip_sigma, colors, tile_ids, offsets, counts, width, height, tile_size, out, stop,
                         counters):
@@ -70,12 +81,8 @@ if numba is not None:
                     q_stop = start
                     for q in range(start, end):
                         q_stop = q + 1
-                        dx = params[q, 0] - pcx
-                        dy = params[q, 1] - pcy
-                        sigma = 0.5 * (params[q, 2] * dx * dx + params[q, 4] * dy * dy) + params[q, 3] * dx * dy
-                        if sigma > skip_sigma[q]:  # alpha < 1/255 for sure: no exp (most pairs of a tile)
-                            continue
-                        alpha = min(MAX_ALPHA, params[q, 5] * math.exp(-sigma))
+                        raw = _raw_alpha(params, skip_sigma, q, params[q, 0] - pcx, params[q, 1] - pcy)
+                        alpha = min(MAX_ALPHA, raw)
                         if alpha < ALPHA_THRESHOLD:
                             continue
                         next_T = T * (1.0 - alpha)
@@ -134,10 +141,7 @@ if numba is not None:
                         b = params[q, 3]
                         c = params[q, 4]
                         o = params[q, 5]
-                        sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-                        if sigma > skip_sigma[q]:
-                            continue
-                        raw = o * math.exp(-sigma)
+                        raw = _raw_alpha(params, skip_sigma, q, dx, dy)
                         alpha = min(MAX_ALPHA, raw)
                         if alpha < ALPHA_THRESHOLD:
                             continue
