@@ -168,6 +168,28 @@ class GaussianAvatar(nn.Module):
         self.sh0_latent_basis = z(A, self.latent_in, 3) if cfg.latent_sh0 and self.latent_in else None  # [A, L, 3]
 
     # --- helpers -------------------------------------------------------------------------
+    PACKED_BASES = ("gauss_pos_basis", "scale_basis", "rotation_basis", "sh0_basis", "shn_basis")
+    """The Gaussian corrective bases :meth:`pack_bases_` lays side by side, in order."""
+
+    def pack_bases_(self) -> bool:
+        """Store the Gaussian corrective bases side by side in one ``[G, Bg, 13 + 3(K-1)]`` tensor, each
+        parameter a view of it (values, shapes and parameter objects unchanged), so inference reads them
+        as one stream (:func:`~gsavatar.models.kernels.interpolated_deltas_fast`, ~1.5x faster on CPU).
+        For inference (:func:`~gsavatar.runs.load.load_run` calls it); training works on the views too.
+        ``.to()`` and the like unpack them again. Returns whether there was anything to pack."""
+        params = [getattr(self, n) for n in self.PACKED_BASES]
+        G, Bg = params[0].shape[:2]
+        if Bg == 0 or G == 0:
+            return False
+        with torch.no_grad():
+            packed = torch.cat([p.detach().reshape(G, Bg, -1) for p in params], dim=2)
+        offset = 0
+        for p in params:
+            width = int(np.prod(p.shape[2:]))
+            p.data = packed[:, :, offset:offset + width].unflatten(2, p.shape[2:])
+            offset += width
+        return True
+
     _LEGACY_HEAD_KEYS = ("mlp.", "uv_decoder.", "gauss_uv")
     """State-dict keys of the pose network before it moved into ``pose_head`` (checkpoints of earlier runs)."""
 
@@ -303,9 +325,8 @@ class GaussianAvatar(nn.Module):
             sh = sh0[:, :, None]
 
         T = skinning_transforms(self.rig_tensors(pose.device, pose.dtype), pose, root_rotation, root_translation)  # [B, J, 4, 4]
-        affine = gm.blend_affine(T, self.skin_indices, self.skin_weights,
-                                 self.sparse_weights("skin", T.device, T.dtype))  # [B, G, 3, 4]
-        means, quats = gm.pose_gaussians(canonical, quats_c, affine)
+        means, quats = gm.pose_lbs(canonical, quats_c, T, self.skin_indices, self.skin_weights,
+                                   self.sparse_weights("skin", T.device, T.dtype))
         return AvatarOutput(means, quats, scales, opacities, sh, ctrl_disp, canonical)
 
     # --- optimisation ----------------------------------------------------------------------

@@ -23,7 +23,8 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from gsavatar.geometry.rotations import matrix_to_quat, orthonormalize, quat_to_matrix
-from gsavatar.models.kernels import basis_product, polar_rotation_fast, posed_quaternion_fast, sparse_interpolate_fast
+from gsavatar.models.kernels import (basis_product, polar_rotation_fast, pose_lbs_fast, posed_quaternion_fast,
+                                     sparse_interpolate_fast)
 from gsavatar.models.config import SH_C0
 
 HAND_GROUP_NAMES = ("left_hand", "right_hand")
@@ -152,6 +153,9 @@ def activate_quat(x: Tensor) -> Tensor:
     # Normalising is scale invariant, so dividing by the detached largest component
     # first changes neither the value nor the gradient, but keeps |x| from overflowing
     # (float32: |x| > ~1e19 had norm inf and silently became the zero quaternion).
+    norm = x.norm(dim=-1, keepdim=True)
+    if bool(torch.isfinite(norm).all()):  # the common case: one pass fewer (same values and gradients)
+        return x / norm.clamp_min(1e-12)
     peak = x.detach().abs().amax(dim=-1, keepdim=True)
     x = x / torch.where(peak > 1.0, peak, torch.ones_like(peak))
     return x / x.norm(dim=-1, keepdim=True).clamp_min(1e-12)
@@ -159,12 +163,14 @@ def activate_quat(x: Tensor) -> Tensor:
 
 def activate_sh0(x: Tensor) -> Tensor:
     """``tanh(x) * 0.5 / C0`` so ``colour = SH0 * C0 + 0.5`` spans (0, 1). [..., 3] -> [..., 3]"""
-    return torch.tanh(x) * (0.5 / SH_C0)
+    # tanh(x) = 2 sigmoid(2x) - 1: CPU torch's tanh costs ~6x its sigmoid (2.0 vs 0.32 ms for 393k
+    # floats, one thread); same values to 2e-7 absolute (tests)
+    return (torch.sigmoid(2.0 * x) - 0.5) * (1.0 / SH_C0)
 
 
 def activate_shn(x: Tensor, bound: float) -> Tensor:
-    """``bound * tanh(x)``. [...] -> [...]"""
-    return torch.tanh(x) * bound
+    """``bound * tanh(x)`` (computed as ``bound * (2 sigmoid(2x) - 1)``, see :func:`activate_sh0`). [...] -> [...]"""
+    return (torch.sigmoid(2.0 * x) - 0.5) * (2.0 * bound)
 
 
 def sh0_from_rgb(rgb: Tensor) -> Tensor:
@@ -262,6 +268,24 @@ def pose_gaussians(canonical: Tensor, quats: Tensor, affine: Tensor, compiled: b
             return means, fast
     R = polar_rotation(A, compiled=compiled) @ quat_to_matrix(quats)
     return means, matrix_to_quat(R)
+
+
+def pose_lbs(canonical: Tensor, quats: Tensor, transforms: Tensor, skin_indices: Tensor, skin_weights: Tensor,
+             skin_matrix: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Skin and pose canonical Gaussians: :func:`blend_affine` then :func:`pose_gaussians`.
+
+    At inference on CPU (no gradients, every blend with ``det > POLAR_MIN_DET``) the three steps run as
+    one compiled pass (:func:`~gsavatar.models.kernels.pose_lbs_fast`; the two functions are its oracle).
+
+    canonical [B, G, 3], quats [B, G, 4] wxyz (unit), transforms [B, J, 4, 4] posed_from_rest,
+    skin_indices/skin_weights [G, K], skin_matrix sparse [G, J] or None -> (means [B, G, 3], quats [B, G, 4])
+    """
+    if skin_matrix is not None:
+        fast = pose_lbs_fast(transforms, skin_matrix, canonical, quats, 10 * torch.finfo(canonical.dtype).eps,
+                             POLAR_MIN_DET)
+        if fast is not None:
+            return fast
+    return pose_gaussians(canonical, quats, blend_affine(transforms, skin_indices, skin_weights, skin_matrix))
 
 
 def _det3(M: Tensor) -> Tensor:

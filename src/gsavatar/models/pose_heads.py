@@ -35,6 +35,7 @@ from gsavatar.data_schema.hierarchy import Hierarchy
 from gsavatar.models import gaussians as gm
 from gsavatar.models.config import ModelConfig
 from gsavatar.models.encoder import sample_at_uv
+from gsavatar.models.kernels import interpolated_deltas_fast
 from gsavatar.models.mlp import AnchorMLPs
 from gsavatar.models.uv_decoder import UVDecoder
 
@@ -126,8 +127,16 @@ class AnchorMLPHead(PoseHead):
                 n_sh_rest: int) -> PoseDeltas:
         coeffs = self.coefficients(avatar.anchor_inputs(pose, face, latents))  # [B, A, Bg + Bc]
         dev, dt, Bg = coeffs.device, coeffs.dtype, self.n_basis
-        w_g = gm.sparse_interpolate(coeffs[..., :Bg], avatar.sparse_weights("gauss_anchor", dev, dt))  # [B, G, Bg]
         w_c = gm.sparse_interpolate(coeffs[..., Bg:], avatar.sparse_weights("ctrl_anchor", dev, dt))  # [B, C, Bc]
+        fast = interpolated_deltas_fast(  # inference on CPU: one pass, same numbers (tests)
+            coeffs[..., :Bg], avatar.sparse_weights("gauss_anchor", dev, dt), avatar.gauss_pos_basis,
+            avatar.scale_basis, avatar.rotation_basis, avatar.sh0_basis, avatar.shn_basis, n_sh_rest,
+            self.anchor_sh0(avatar, coeffs[..., :Bg], latents))
+        if fast is not None:
+            pos, scale, rot, sh0, shn = fast
+            return PoseDeltas(ctrl=gm.basis_delta(avatar.ctrl_basis, w_c), position=pos, scale=scale, rotation=rot,
+                              sh0=sh0, shn=shn if n_sh_rest else None)
+        w_g = gm.sparse_interpolate(coeffs[..., :Bg], avatar.sparse_weights("gauss_anchor", dev, dt))  # [B, G, Bg]
         return PoseDeltas(
             ctrl=gm.basis_delta(avatar.ctrl_basis, w_c),
             position=gm.basis_delta(avatar.gauss_pos_basis, w_g),
@@ -143,15 +152,22 @@ class AnchorMLPHead(PoseHead):
         ``l_a @ Λ^l_a`` (``ModelConfig.latent_sh0``) interpolated to the Gaussians.
         coeffs_g [B, A, Bg], w_g [B, G, Bg], latents [B, A, L] or None -> [B, G, 3]"""
         d = gm.basis_delta(avatar.sh0_basis, w_g)
+        d_a = AnchorMLPHead.anchor_sh0(avatar, coeffs_g, latents)
+        if d_a is None:
+            return d
+        return d + gm.sparse_interpolate(d_a, avatar.sparse_weights("gauss_anchor", d_a.device, d_a.dtype))
+
+    @staticmethod
+    def anchor_sh0(avatar: GaussianAvatar, coeffs_g: Tensor, latents: Tensor | None = None) -> Tensor | None:
+        """The anchors' SH0 deltas ``<w_a, ΔΛ^a_sh0> + l_a @ Λ^l_a`` (None: the avatar has neither map).
+        coeffs_g [B, A, Bg], latents [B, A, L] or None -> [B, A, 3] or None"""
         d_a = None
         if avatar.sh0_anchor_basis is not None:
             d_a = torch.einsum("bak,akd->bad", coeffs_g, avatar.sh0_anchor_basis)  # [B, A, 3]
         if avatar.sh0_latent_basis is not None and latents is not None:
             d_l = torch.einsum("bal,ald->bad", latents.to(coeffs_g.dtype), avatar.sh0_latent_basis)  # [B, A, 3]
             d_a = d_l if d_a is None else d_a + d_l
-        if d_a is None:
-            return d
-        return d + gm.sparse_interpolate(d_a, avatar.sparse_weights("gauss_anchor", d_a.device, d_a.dtype))
+        return d_a
 
 
 class MMLPsHead(AnchorMLPHead):

@@ -69,6 +69,8 @@ def load_run(run: str | Path, device: str = "auto") -> LoadedRun:
     check_same_dataset(ckpt, state["config"], cfg.dataset, dataset_fingerprint(cfg.dataset))
     net.load_state_dict(state["modules"]["net"])
     net.eval()
+    if dev.type == "cpu":
+        net.avatar.pack_bases_()  # one stream for the CPU inference kernel; same values
     return LoadedRun(net, scene, cfg, int(state["step"]))
 
 

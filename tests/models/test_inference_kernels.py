@@ -1,0 +1,230 @@
+"""Inference-only compiled paths (no autograd) against the training path they replace: the fused corrective
+deltas (separate and packed bases), the fused LBS + posing pass, the posed quaternion without saved state,
+packing the bases, and the whole avatar forward under ``torch.no_grad`` vs with gradients enabled."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from gsavatar.models import GaussianAvatar, ModelConfig, model_preset
+from gsavatar.models import gaussians as gm
+from gsavatar.models import kernels
+from gsavatar.prep.localize import build_localization
+from gsavatar.prep.pca import fit_pose_pca
+from gsavatar.prep.sample_points import build_hierarchy
+from prep_fixtures import arm_rig, arm_template, randomize_bases
+
+
+@pytest.fixture(scope="module")
+def prep():
+    rig = arm_rig()
+    t = arm_template()
+    h = build_hierarchy(t, n_anchors=24, n_control=120, n_gaussians=800, seed=0, min_candidates=2000)
+    masks = build_localization(h, rig, t.face_uv_mask)
+    poses = np.random.default_rng(0).normal(size=(60, rig.pose_dim)) * 0.3
+    return rig, h, masks, fit_pose_pca(poses, rig, 2, "local"), fit_pose_pca(poses, rig, 3, "global")
+
+
+def make(prep, cfg: ModelConfig | None = None, randomize: bool = False) -> GaussianAvatar:
+    rig, h, masks, pl, pg = prep
+    av = GaussianAvatar(h, masks, rig, pl, pg, cfg or model_preset("tiny"))
+    if randomize:  # non-zero correctives so that outputs depend on the MLP inputs
+        randomize_bases(av)
+    return av
+
+
+def _interp_case(dtype, B=2, G=300, A=12, K=16, R=3, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    idx = torch.randint(0, A, (G, 3), generator=g)
+    w = torch.rand(G, 3, generator=g, dtype=dtype)
+    W = gm.interpolation_matrix(idx, w / w.sum(1, keepdim=True), A)
+    bases = [torch.randn(G, K, d, generator=g, dtype=dtype) for d in (3, 3, 4, 3)]
+    shn = torch.randn(G, K, R, 3, generator=g, dtype=dtype)
+    coeffs = torch.randn(B, A, K, generator=g, dtype=dtype)
+    extra = torch.randn(B, A, 3, generator=g, dtype=dtype)
+    return coeffs, W, bases, shn, extra
+
+
+def _interp_reference(coeffs, W, bases, shn, n_rest, extra):
+    w = torch.sparse.mm(W, coeffs.transpose(0, 1).reshape(W.shape[1], -1)).reshape(W.shape[0], coeffs.shape[0], -1)
+    w = w.transpose(0, 1)  # [B, G, K]
+    out = [torch.einsum("bnk,nkd->bnd", w, b) for b in bases]
+    if extra is not None:
+        out[3] = out[3] + gm.sparse_interpolate(extra, W, compiled=False)
+    out.append(torch.einsum("bnk,nkrc->bnrc", w, shn[:, :, :n_rest]))
+    return out
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("packed", [False, True])
+@pytest.mark.parametrize("n_rest", [0, 2, 3])
+@pytest.mark.parametrize("with_extra", [False, True])
+def test_interpolated_deltas_match_interpolation_then_products(dtype, packed, n_rest, with_extra):
+    coeffs, W, bases, shn, extra = _interp_case(dtype)
+    extra = extra if with_extra else None
+    if packed:  # side by side, as GaussianAvatar.pack_bases_ lays them out
+        G, K = shn.shape[:2]
+        flat = torch.cat([*bases, shn.reshape(G, K, -1)], 2)
+        widths = [3, 3, 4, 3, shn.shape[2] * 3]
+        views, o = [], 0
+        for b, wd in zip([*bases, shn], widths):
+            views.append(flat[:, :, o:o + wd].unflatten(2, b.shape[2:]))
+            o += wd
+        *bases, shn = views
+        assert kernels.packed_bases(*bases, shn) is not None
+    else:
+        assert kernels.packed_bases(*bases, shn) is None
+    with torch.no_grad():
+        got = kernels.interpolated_deltas_fast(coeffs, W, *bases, shn, n_rest, extra)
+    want = _interp_reference(coeffs, W, bases, shn, n_rest, extra)
+    tol = {"rtol": 1e-5, "atol": 1e-5} if dtype == torch.float32 else {"rtol": 1e-12, "atol": 1e-12}
+    assert got is not None and len(got) == 5
+    for a, b in zip(got, want):
+        assert a.shape == b.shape
+        torch.testing.assert_close(a, b, **tol)
+
+
+def test_interpolated_deltas_decline_with_gradients_or_mixed_dtypes():
+    coeffs, W, bases, shn, extra = _interp_case(torch.float32)
+    assert kernels.interpolated_deltas_fast(coeffs, W, *bases, shn, 3, extra) is None  # grad mode on
+    with torch.no_grad():
+        assert kernels.interpolated_deltas_fast(coeffs.double(), W, *bases, shn, 3, extra) is None
+        assert kernels.interpolated_deltas_fast(coeffs, W, *bases, shn, 4, extra) is None  # more bands than bases
+        assert kernels.interpolated_deltas_fast(coeffs[..., :0], W, *[b[:, :0] for b in bases], shn[:, :0], 3) is None
+
+
+def test_packed_views_must_line_up():
+    coeffs, W, bases, shn, _ = _interp_case(torch.float32)
+    G, K = shn.shape[:2]
+    flat = torch.cat([*bases, shn.reshape(G, K, -1)], 2)
+    views = [flat[:, :, 0:3], flat[:, :, 3:6], flat[:, :, 6:10], flat[:, :, 10:13], flat[:, :, 13:].unflatten(2, (3, 3))]
+    assert kernels.packed_bases(*views) is not None
+    swapped = [views[1], views[0], *views[2:]]  # wrong order: not the packed layout
+    assert kernels.packed_bases(*swapped) is None
+
+
+def _posing_case(dtype, B=2, G=400, J=6, seed=0, spread=0.6):
+    g = torch.Generator().manual_seed(seed)
+    from gsavatar.geometry.rotations import axis_angle_to_matrix
+
+    T = torch.eye(4, dtype=dtype).repeat(B, J, 1, 1)
+    T[:, :, :3, :3] = axis_angle_to_matrix(torch.randn(B, J, 3, generator=g, dtype=dtype) * spread)
+    T[:, :, :3, 3] = torch.randn(B, J, 3, generator=g, dtype=dtype)
+    idx = torch.stack([torch.randperm(J, generator=g)[:3] for _ in range(G)])
+    w = torch.rand(G, 3, generator=g, dtype=dtype) + 0.05
+    w = w / w.sum(1, keepdim=True)
+    X = torch.randn(B, G, 3, generator=g, dtype=dtype)
+    q = torch.randn(B, G, 4, generator=g, dtype=dtype)
+    return T, idx, w, gm.interpolation_matrix(idx, w, J), X, q
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_fused_lbs_posing_matches_blend_then_pose(dtype):
+    T, idx, w, S, X, q = _posing_case(dtype)
+    q_unit = q / q.norm(dim=-1, keepdim=True)
+    with torch.no_grad():
+        got = kernels.pose_lbs_fast(T, S, X, q, 10 * torch.finfo(dtype).eps, gm.POLAR_MIN_DET)
+        means, quats = gm.pose_gaussians(X, q_unit, gm.blend_affine(T, idx, w), compiled=False)
+    assert got is not None
+    tol = {"rtol": 1e-5, "atol": 2e-5} if dtype == torch.float32 else {"rtol": 1e-10, "atol": 1e-10}
+    torch.testing.assert_close(got[0], means, **tol)
+    torch.testing.assert_close(got[1], quats, **tol)
+    assert (got[1][..., 0] >= 0).all()
+
+
+def test_fused_lbs_posing_declines_singular_blends_and_gradients():
+    T, idx, w, S, X, q = _posing_case(torch.float64)
+    T[0, :, :3, :3] = 0.0  # every blend of frame 0 singular: the SVD path must take them
+    with torch.no_grad():
+        assert kernels.pose_lbs_fast(T, S, X, q, 1e-12, gm.POLAR_MIN_DET) is None
+        # gm.pose_lbs falls back and still returns the reference numbers
+        means, quats = gm.pose_lbs(X, q / q.norm(dim=-1, keepdim=True), T, idx, w, S)
+        m_ref, q_ref = gm.pose_gaussians(X, q / q.norm(dim=-1, keepdim=True), gm.blend_affine(T, idx, w), compiled=False)
+    torch.testing.assert_close(means, m_ref)
+    torch.testing.assert_close(quats, q_ref)
+    T2, _, _, S2, X2, q2 = _posing_case(torch.float64, seed=1)
+    assert kernels.pose_lbs_fast(T2, S2, X2.requires_grad_(), q2, 1e-12, gm.POLAR_MIN_DET) is None
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_posed_quaternion_without_autograd_equals_the_autograd_path(dtype):
+    T, idx, w, S, X, q = _posing_case(dtype, B=1, G=300)
+    M = gm.blend_affine(T, idx, w)[..., :3]
+    tol = 10 * torch.finfo(dtype).eps
+    with_grad = kernels.posed_quaternion_fast(M.clone().requires_grad_(), q, tol)
+    with torch.no_grad():
+        plain = kernels.posed_quaternion_fast(M, q, tol)
+    assert with_grad.requires_grad and not plain.requires_grad and plain.dtype == dtype
+    # float32 inputs are read as float32 there and converted to float64 first here: one output ulp apart
+    torch.testing.assert_close(plain, with_grad.detach(), rtol=0, atol=0 if dtype == torch.float64 else 2.5e-7)
+
+
+@pytest.mark.parametrize("det_scale", [1e-4, 0.3, 0.9, 1.0, 1.9, 50.0])
+def test_newton_polar_scaling_is_exact_inside_and_outside_the_polynomial_range(det_scale):
+    # |det| in (0.5, 2) takes the polynomial cube root, outside it pow(): both must give the SVD's factor
+    g = torch.Generator().manual_seed(3)
+    M = torch.randn(500, 3, 3, generator=g, dtype=torch.float64)
+    M = M[torch.linalg.det(M) > 1e-3]
+    M = M / torch.linalg.det(M).abs()[:, None, None] ** (1 / 3) * det_scale ** (1 / 3)
+    U, _, Vh = torch.linalg.svd(M)
+    R = kernels.polar_rotation_fast(M, 1e-14)
+    torch.testing.assert_close(R, U @ Vh, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("variant", ["ours", "mmlps"])
+def test_avatar_forward_no_grad_matches_the_training_path(prep, variant):
+    cfg = ModelConfig(**{**model_preset("tiny").__dict__, "variant": variant, "sh_degree": 2})
+    av = make(prep, cfg, randomize=True).eval()
+    rig = prep[0]
+    g = torch.Generator().manual_seed(7)
+    pose = torch.randn(2, rig.pose_dim, generator=g) * 0.4
+    rr, tt = torch.randn(2, 3, generator=g) * 0.3, torch.randn(2, 3, generator=g)
+    lat = torch.randn(2, av.num_anchors, av.latent_in, generator=g) if av.latent_in else None
+    ref = av(pose, rr, tt, latents=lat)  # gradients enabled: the autograd path
+    assert ref.means.requires_grad
+    with torch.no_grad():
+        fast = av(pose, rr, tt, latents=lat)
+        assert av.pack_bases_()
+        packed = av(pose, rr, tt, latents=lat)
+    for out in (fast, packed):
+        for name in ("means", "quats", "scales", "opacities", "sh"):
+            torch.testing.assert_close(getattr(out, name), getattr(ref, name).detach(), rtol=1e-5, atol=2e-6)
+
+
+def test_packing_keeps_values_parameters_and_training(prep):
+    av = make(prep, randomize=True)
+    before = {n: p.detach().clone() for n, p in av.named_parameters()}
+    ids = {n: id(p) for n, p in av.named_parameters()}
+    assert av.pack_bases_()
+    assert {n: id(p) for n, p in av.named_parameters()} == ids
+    for n, p in av.named_parameters():
+        torch.testing.assert_close(p.detach(), before[n], rtol=0, atol=0)
+    assert kernels.packed_bases(*(getattr(av, n) for n in av.PACKED_BASES)) is not None
+    # an optimiser step on the views writes through to the packed storage, and the state dict round-trips
+    rig = prep[0]
+    opt = torch.optim.AdamW(av.param_groups(), eps=1e-15)
+    out = av(torch.randn(1, rig.pose_dim) * 0.3, torch.zeros(1, 3), torch.zeros(1, 3))
+    (out.means.square().sum() + out.sh.square().sum() + out.scales.sum() + out.quats[..., 1:].sum()).backward()
+    opt.step()
+    for name in av.PACKED_BASES:
+        assert not torch.equal(getattr(av, name).detach(), before[name]), name
+    assert kernels.packed_bases(*(getattr(av, n) for n in av.PACKED_BASES)) is not None
+    other = make(prep)
+    other.load_state_dict(av.state_dict())
+    for n, p in other.named_parameters():
+        torch.testing.assert_close(p.detach(), dict(av.named_parameters())[n].detach(), rtol=0, atol=0)
+
+
+def test_activations_match_tanh_and_the_guarded_quaternion():
+    x = torch.linspace(-30, 30, 20001, dtype=torch.float32)
+    from gsavatar.models.config import SH_C0
+
+    torch.testing.assert_close(gm.activate_sh0(x), torch.tanh(x) * (0.5 / SH_C0), rtol=0, atol=4e-7)
+    torch.testing.assert_close(gm.activate_shn(x, 0.7), 0.7 * torch.tanh(x), rtol=0, atol=2e-7)
+    q = torch.tensor([[1e20, 2e20, 0.0, 0.0], [3e-13, 0.0, 0.0, 0.0], [0.3, -2.0, 0.5, 1.0]])
+    got = gm.activate_quat(q)
+    assert torch.isfinite(got).all()
+    torch.testing.assert_close(got[0], torch.tensor([1.0, 2.0, 0.0, 0.0]) / np.sqrt(5.0))
+    torch.testing.assert_close(got[2], q[2] / q[2].norm())
