@@ -191,7 +191,7 @@ def main() -> None:
     views_of, io_s = {}, []
     for f in frames:
         t0 = time.perf_counter()
-        views_of[f] = load_frame_views(cap, f, cams)
+        views_of[f] = load_frame_views(cap, f, cams, uint8=True)  # as the project-uv stage reads them
         io_s.append(time.perf_counter() - t0)
     io = float(np.mean(io_s))
     # raw decode only (OpenCV, 8-bit, no float conversion or checks): the floor no reader can go below
@@ -206,7 +206,7 @@ def main() -> None:
         raw_s.append(time.perf_counter() - t0)
     raw = float(np.mean(raw_s))
     print(f"# decode per frame: {raw:.3f} s raw (cv2.imread of {len(cams)} images + masks), {io:.3f} s through "
-          f"gsavatar's readers (float conversion, mask decoding, finite check)")
+          f"gsavatar's readers (8-bit images kept as uint8 as the stage does, mask decoding and checks)")
 
     def raw_decode(f: int) -> float:
         t0 = time.perf_counter()

@@ -295,6 +295,34 @@ def test_uint8_images_equal_float_images():
         np.testing.assert_array_equal(x, y)
 
 
+def test_image_with_foreground_packs_rgb_and_the_flag():
+    rng = np.random.default_rng(0)
+    for dtype in (np.uint8, np.float32):
+        img = rng.integers(0, 256, (7, 9, 3)).astype(dtype)
+        fg = rng.random((7, 9)) > 0.4
+        out = zb.image_with_foreground(img, fg)
+        assert out.shape == (63, 4) and out.dtype == dtype
+        np.testing.assert_array_equal(out[:, :3], img.reshape(-1, 3))
+        np.testing.assert_array_equal(out[:, 3] != 0, fg.ravel())
+
+
+def test_read_image_keep_uint8_is_the_float_read_times_255(tmp_path):
+    import cv2
+
+    from gsavatar.utils.io import read_image
+
+    rng = np.random.default_rng(1)
+    rgb = rng.integers(0, 256, (20, 30, 3), dtype=np.uint8)
+    for name in ("a.png", "a.jpg"):
+        cv2.imwrite(str(tmp_path / name), rgb[..., ::-1])
+        u8 = read_image(tmp_path / name, keep_uint8=True)
+        f = read_image(tmp_path / name)
+        assert u8.dtype == np.uint8 and u8.shape == f.shape
+        np.testing.assert_array_equal(u8.astype(np.float32) / np.float32(255), f)
+    cv2.imwrite(str(tmp_path / "b.png"), (rgb.astype(np.uint16) * 257)[..., ::-1])  # 16-bit: float either way
+    assert read_image(tmp_path / "b.png", keep_uint8=True).dtype == np.float32
+
+
 def test_visibility_config_validated():
     with pytest.raises(ValueError, match="visibility"):
         ProjectConfig(visibility="raster")  # type: ignore[arg-type]

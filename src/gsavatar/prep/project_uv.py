@@ -180,8 +180,8 @@ def _fov_r2_limit(cam: Camera) -> float:
 # --------------------------------------------------------------------------- sampling
 class _ViewCtx(NamedTuple):
     cam: Camera
-    image: np.ndarray  # [H*W, 3] float32
-    fg: np.ndarray  # [H*W] bool eroded foreground
+    image: np.ndarray  # [H*W, 3] float32 (z-buffer path: [H*W, 4] uint8/float32, alpha = the quad foreground)
+    fg: np.ndarray | None  # [H*W] bool eroded foreground (None on the z-buffer path: in the image's alpha)
     center: np.ndarray  # [3]
     r2max: float
 
@@ -335,8 +335,7 @@ class _ZFrame:
     num_views: int  # views consumed (including ones without foreground)
     index: list[int]  # position of each kept view among all views
     cams: list[np.ndarray]  # [CAM_FIELDS] float64 packed cameras
-    fgs: list[np.ndarray]  # [H*W] bool eroded foreground
-    imgs: list[np.ndarray]  # [H*W, 3] float32 or uint8
+    imgs: list[np.ndarray]  # [H*W, 4] float32 or uint8, alpha = quad foreground (zbuffer.image_with_foreground)
     tri_ids: list[np.ndarray]  # [Hg, Wg] int32 front triangle (-1 empty)
     planes: list[np.ndarray]  # [F, 4] float64 camera-space triangle planes
 
@@ -449,6 +448,11 @@ class UVProjector:
         key = (cam.name, tuple(np.asarray(cam.dist, dtype=np.float64).tolist()), cam.width, cam.height, tuple(cam.K.ravel().tolist()))
         if key not in self._r2:
             self._r2[key] = _fov_r2_limit(cam)
+        if quad:  # the z-buffer kernels read the foreground from the image's alpha channel
+            from gsavatar.prep.zbuffer import image_with_foreground
+
+            img = image_with_foreground(np.asarray(image[..., :3], dtype=np.uint8 if image.dtype == np.uint8 else np.float32), fg)
+            return _ViewCtx(cam, img, None, np.asarray(cam.center, dtype=np.float64), self._r2[key])
         img = np.ascontiguousarray(image[..., :3], dtype=np.uint8 if image.dtype == np.uint8 else np.float32).reshape(-1, 3)
         return _ViewCtx(cam, img, fg.ravel(), np.asarray(cam.center, dtype=np.float64), self._r2[key])
 
@@ -467,7 +471,7 @@ class UVProjector:
         Nrm = np.empty((3, N))
         zb.surface(v, vertex_normals(v, self.faces), self._z_corners, self._z_bary, P, Nrm)
         faces = self.faces
-        out = _ZFrame(P, Nrm, 0, [], [], [], [], [], [])
+        out = _ZFrame(P, Nrm, 0, [], [], [], [], [])
         for view in views:
             c = out.num_views
             out.num_views += 1
@@ -497,7 +501,6 @@ class UVProjector:
                 tri_id, planes = np.full((1, 1), -1, np.int32), np.zeros((1, 4))
             out.index.append(c)
             out.cams.append(zb.pack_camera(cam, float(ctx.r2max), grid, crop))
-            out.fgs.append(ctx.fg)
             out.imgs.append(ctx.image)
             out.tri_ids.append(tri_id)
             out.planes.append(planes)
@@ -540,7 +543,7 @@ class UVProjector:
             for k, c in enumerate(zf.index):
                 r = np.zeros((N, 3), np.float32)
                 o = np.zeros(N, bool)
-                zb.sample_view(zf.P, zf.Nrm, self._z_tri, self.faces, zf.cams[k], zf.fgs[k], zf.imgs[k], zf.imgs[k].dtype == np.uint8,
+                zb.sample_view(zf.P, zf.Nrm, self._z_tri, self.faces, zf.cams[k], zf.imgs[k], zf.imgs[k].dtype == np.uint8,
                                occlusion, zf.tri_ids[k], zf.planes[k], float(self.config.occlusion_eps),
                                float(self.config.min_cos), r, o)
                 rgb[self._zorder, c] = np.where(o[:, None], r, np.float32(0))
@@ -609,7 +612,7 @@ class UVProjector:
             planes = np.zeros((len(zf.planes), F, 4))
             for k, p in enumerate(zf.planes):
                 planes[k, :len(p)] = p
-            zb.project_frame(zf.P, zf.Nrm, self._z_tri, self.faces, np.stack(zf.cams), List(zf.fgs), List(imgs), u8, True,
+            zb.project_frame(zf.P, zf.Nrm, self._z_tri, self.faces, np.stack(zf.cams), List(imgs), u8, True,
                              List(zf.tri_ids), planes, float(cfg.occlusion_eps), float(cfg.min_cos),
                              cfg.fusion == "median_band", float(cfg.band[0]), float(cfg.band[1]), BLOCK, col, cnt, sn)
         S = self.size
@@ -708,8 +711,12 @@ def cameras_seeing(vertices: np.ndarray, cameras: Sequence[Camera]) -> list[str]
     return out
 
 
-def iter_frame_views(capture: Capture, frame: int, cams: Sequence[str] | None = None) -> Iterable[View]:
-    """Yield (camera, image [H,W,3] float32, mask [H,W] float32) of one frame, one view at a time."""
+def iter_frame_views(capture: Capture, frame: int, cams: Sequence[str] | None = None,
+                     uint8: bool = False) -> Iterable[View]:
+    """Yield (camera, image [H,W,3] float32, mask [H,W] float32) of one frame, one view at a time.
+
+    ``uint8``: 8-bit image files come as their uint8 values (:func:`~gsavatar.utils.io.read_image`'s
+    ``keep_uint8``; the projector samples them as ``x / 255``, the same numbers)."""
     from gsavatar.utils.errors import SchemaError
     from gsavatar.utils.io import read_image, read_mask
 
@@ -718,7 +725,7 @@ def iter_frame_views(capture: Capture, frame: int, cams: Sequence[str] | None = 
             raise KeyError(f"unknown camera {name!r}")
         cam = capture.cameras[name]
         ip, mp = capture.image_path(name, frame), capture.mask_path(name, frame)
-        img = read_image(ip)
+        img = read_image(ip, keep_uint8=uint8)
         mask = read_mask(mp)
         if img.shape[:2] != (cam.height, cam.width):
             raise SchemaError(ip, "size", f"is {img.shape[1]}x{img.shape[0]}, calibration.json says {cam.width}x{cam.height} for {name!r}")
@@ -783,6 +790,7 @@ def check_mask_coverage(capture: Capture, cams: Sequence[str], max_frames: int =
                           "(or 1, or the alpha) on the body and 0 elsewhere (docs/data_schema.md, Masks)")
 
 
-def load_frame_views(capture: Capture, frame: int, cams: Sequence[str] | None = None) -> list[View]:
-    """All views of one frame: list of (camera, image [H,W,3] float32 [0,1], mask [H,W] float32 [0,1])."""
-    return list(iter_frame_views(capture, frame, cams))
+def load_frame_views(capture: Capture, frame: int, cams: Sequence[str] | None = None, uint8: bool = False) -> list[View]:
+    """All views of one frame: list of (camera, image [H,W,3] float32 [0,1], mask [H,W] float32 [0,1])
+    (``uint8``: as :func:`iter_frame_views`)."""
+    return list(iter_frame_views(capture, frame, cams, uint8))

@@ -110,7 +110,7 @@ def _project_shard(capture_dir: str, dataset: str, cfg_json: dict, cams: list[st
     posed = ShardReader(stage_dir(Path(dataset), "pose-template"))
     tex, cnt, seen = [], [], []
     for f in frames:
-        out = proj.project(posed.get(f)["vertices"], iter_frame_views(cap, f, cams), frame=f)
+        out = proj.project(posed.get(f)["vertices"], iter_frame_views(cap, f, cams, uint8=True), frame=f)
         tex.append(out.texture.astype(np.float16))
         cnt.append(out.count)
         seen.append(out.seen)
