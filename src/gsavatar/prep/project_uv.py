@@ -382,6 +382,7 @@ class UVProjector:
         self._z_tri = np.ascontiguousarray(tri[self._zorder], dtype=np.int32)  # [N] texel triangle (self test)
         self._r2 = {}
         self._grids = {}
+        self._rgba: dict[int, np.ndarray] = {}  # per view slot: the kernels' RGBA image buffer, refilled each frame
         self._closed = is_closed(self.faces)  # back faces can be culled from the z-buffer
 
     @property
@@ -422,10 +423,11 @@ class UVProjector:
         Nrm *= np.where(good, 1.0 / np.where(good, length, 1.0), 0.0)
         return P, Nrm
 
-    def _view_ctx(self, view: View, frame, keep_uint8: bool = False, quad: bool = False) -> _ViewCtx | None:
+    def _view_ctx(self, view: View, frame, keep_uint8: bool = False, quad: bool = False, slot: int = -1) -> _ViewCtx | None:
         """Checked view: image [H*W, 3] (float32 in [0, 1]; uint8 kept as is when ``keep_uint8``), eroded
         foreground [H*W] bool (``quad``: :func:`~gsavatar.prep.zbuffer.quad_foreground`), camera centre and
-        distortion radius bound. None when the mask has no foreground."""
+        distortion radius bound. None when the mask has no foreground. ``slot``: the view's position in the
+        frame; with ``quad`` its RGBA image is written into the buffer of that slot from the previous frame."""
         cam, image, mask = view
         image = np.asarray(image)
         if image.dtype == np.uint8 and not keep_uint8:
@@ -451,7 +453,10 @@ class UVProjector:
         if quad:  # the z-buffer kernels read the foreground from the image's alpha channel
             from gsavatar.prep.zbuffer import image_with_foreground
 
-            img = image_with_foreground(np.asarray(image[..., :3], dtype=np.uint8 if image.dtype == np.uint8 else np.float32), fg)
+            img = image_with_foreground(np.asarray(image[..., :3], dtype=np.uint8 if image.dtype == np.uint8 else np.float32), fg,
+                                        self._rgba.get(slot) if slot >= 0 else None)
+            if slot >= 0:
+                self._rgba[slot] = img  # refilled next frame (the kernels are done with it by then)
             return _ViewCtx(cam, img, None, np.asarray(cam.center, dtype=np.float64), self._r2[key])
         img = np.ascontiguousarray(image[..., :3], dtype=np.uint8 if image.dtype == np.uint8 else np.float32).reshape(-1, 3)
         return _ViewCtx(cam, img, fg.ravel(), np.asarray(cam.center, dtype=np.float64), self._r2[key])
@@ -475,7 +480,7 @@ class UVProjector:
         for view in views:
             c = out.num_views
             out.num_views += 1
-            ctx = self._view_ctx(view, frame, keep_uint8=True, quad=True)
+            ctx = self._view_ctx(view, frame, keep_uint8=True, quad=True, slot=c)
             if ctx is None or N == 0:  # all-background mask: no samples from this view
                 continue
             cam = ctx.cam
