@@ -156,6 +156,7 @@ def main() -> None:
                     help="visibility paths to time (ProjectConfig.visibility)")
     ap.add_argument("--threads", type=int, nargs="+", default=[1],
                     help="numba threads of the z-buffer path (torch.set_num_threads; the rays path ignores it)")
+    ap.add_argument("--json", type=Path, default=None, help="also write the table (and decode/reader times) as JSON")
     ap.add_argument("--uv-cache", type=Path, default=Path(tempfile.gettempdir()) / "gsavatar_uv_cache")
     args = ap.parse_args()
     if args.thuman4:
@@ -256,6 +257,15 @@ def main() -> None:
     for size, vis, nth, t_map, n, s, d, io_, tps, s2, pm, pmean in rows:
         print(f"| {size} | {vis} | {nth} | {t_map:.2f} | {n:,} | {s:.3f} | {d:.3f} | **{s / d:.2f}** | {io_:.3f} | {s / io_:.2f} | "
               f"{tps / 1e6:.2f} M | {100 * s2:.0f} % | {pm:.2f} | {pmean:.2f} |")
+    if args.json is not None:
+        import json
+
+        keys = ("tex_size", "visibility", "threads", "texel_map_s", "texels", "project_s_per_frame", "raw_decode_s_per_frame",
+                "read_s_per_frame", "texels_per_s", "seen_ge2_fraction", "psnr_median_band_db", "psnr_mean_db")
+        out = {"source": src, "machine": f"{platform.processor() or platform.machine()}, python {platform.python_version()}",
+               "frames": list(map(int, frames)), "views": len(cams),
+               "rows": [{**dict(zip(keys, r)), "project_over_raw_decode": r[5] / r[6]} for r in rows]}
+        args.json.write_text(json.dumps(out, indent=1, default=float, allow_nan=True))
     if tmp is not None:
         tmp.cleanup()
 

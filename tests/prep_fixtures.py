@@ -117,3 +117,23 @@ def randomize_bases(avatar, seed: int = 5, std: float = 0.05) -> None:
         for name, p in avatar.named_parameters():
             if not name.startswith("pose_head.mlp") and not name.endswith("_bias"):
                 p.copy_(torch.randn(p.shape, generator=g) * std)
+
+
+def arm_avatar_inputs(n_anchors: int = 24, n_control: int = 120, n_gaussians: int = 800, min_candidates: int = 2000,
+                      n_poses: int = 60, constant_torso: bool = False):
+    """What a GaussianAvatar is built from, on the arm rig and template: (rig, hierarchy, localization masks,
+    local pose PCA (2 components), global pose PCA (3)). ``constant_torso``: the first three pose slots are
+    held at 0.1 in the PCA's training poses (a constant group)."""
+    from gsavatar.prep.localize import build_localization
+    from gsavatar.prep.pca import fit_pose_pca
+    from gsavatar.prep.sample_points import build_hierarchy
+
+    rig = arm_rig()
+    t = arm_template()
+    h = build_hierarchy(t, n_anchors=n_anchors, n_control=n_control, n_gaussians=n_gaussians, seed=0,
+                        min_candidates=min_candidates)
+    masks = build_localization(h, rig, t.face_uv_mask)
+    poses = np.random.default_rng(0).normal(size=(n_poses, rig.pose_dim)) * 0.3
+    if constant_torso:
+        poses[:, :3] = 0.1
+    return rig, h, masks, fit_pose_pca(poses, rig, 2, "local"), fit_pose_pca(poses, rig, 3, "global")

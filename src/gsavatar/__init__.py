@@ -14,7 +14,7 @@ __version__ = "0.1.0"
 import os as _os
 
 # After every parallel op torch's idle OpenMP workers spin (libgomp's default: 300,000 iterations) on the
-# cores our compiled kernels' threads need; on the 2-core box that cost the live viewer a quarter of its
-# speed (2 threads: ~30 -> ~41 frames/s of Gaussians with 10,000, docs/drive.md). libgomp reads this when
-# torch loads it, so it is set before anything here imports torch; a value the user set wins.
+# cores our compiled kernels' threads need (2 threads on the 2-core box, live Gaussians: median 29.2 ->
+# 33.3 frames/s with 10,000, docs/drive.md). libgomp reads this when torch loads it, so it is set before
+# anything here imports torch; a value the user set wins.
 _os.environ.setdefault("GOMP_SPINCOUNT", "10000")

@@ -11,20 +11,12 @@ import torch
 from gsavatar.models import GaussianAvatar, ModelConfig, model_preset
 from gsavatar.models import gaussians as gm
 from gsavatar.models import kernels
-from gsavatar.prep.localize import build_localization
-from gsavatar.prep.pca import fit_pose_pca
-from gsavatar.prep.sample_points import build_hierarchy
-from prep_fixtures import arm_rig, arm_template, randomize_bases
+from prep_fixtures import arm_avatar_inputs, randomize_bases
 
 
 @pytest.fixture(scope="module")
 def prep():
-    rig = arm_rig()
-    t = arm_template()
-    h = build_hierarchy(t, n_anchors=24, n_control=120, n_gaussians=800, seed=0, min_candidates=2000)
-    masks = build_localization(h, rig, t.face_uv_mask)
-    poses = np.random.default_rng(0).normal(size=(60, rig.pose_dim)) * 0.3
-    return rig, h, masks, fit_pose_pca(poses, rig, 2, "local"), fit_pose_pca(poses, rig, 3, "global")
+    return arm_avatar_inputs()
 
 
 def make(prep, cfg: ModelConfig | None = None, randomize: bool = False) -> GaussianAvatar:

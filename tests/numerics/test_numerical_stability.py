@@ -30,12 +30,10 @@ from gsavatar.models import GaussianAvatar, model_preset
 from gsavatar.models import gaussians as gm
 from gsavatar.models.encoder import LOGVAR_RANGE, AppearanceEncoder, mask_texture, reparameterize, sample_at_uv
 from gsavatar.models.predictor import AppearancePredictor, PredictorConfig, fit_latent_pca, latent_pca_project
-from gsavatar.prep.localize import build_localization
 from gsavatar.prep.pca import fit_pose_pca
-from gsavatar.prep.sample_points import build_hierarchy
 from gsavatar.render import project_gaussians, rasterize
 from gsavatar.train.losses import cpt_smoothness_loss, kl_loss, l1_loss, opacity_loss, scale_loss
-from prep_fixtures import arm_rig, arm_template, body_rig
+from prep_fixtures import arm_avatar_inputs, body_rig
 
 DTYPES = [torch.float64, torch.float32]
 DTYPE_IDS = ["f64", "f32"]
@@ -286,13 +284,9 @@ def test_scale_activation_extremes(log_scale, dtype):
 
 @pytest.fixture(scope="module")
 def arm_avatar_parts():
-    rig = arm_rig()
-    t = arm_template()
-    h = build_hierarchy(t, n_anchors=12, n_control=60, n_gaussians=300, seed=0, min_candidates=1000)
-    masks = build_localization(h, rig, t.face_uv_mask)
-    poses = np.random.default_rng(0).normal(size=(40, rig.pose_dim)) * 0.3
-    poses[:, :3] = 0.1  # a constant group (torso): zero local PCA components there
-    return rig, h, masks, fit_pose_pca(poses, rig, 2, "local"), fit_pose_pca(poses, rig, 3, "global")
+    # a constant group (torso): zero local PCA components there
+    return arm_avatar_inputs(n_anchors=12, n_control=60, n_gaussians=300, min_candidates=1000, n_poses=40,
+                             constant_torso=True)
 
 
 AVATAR_CASES = {

@@ -128,17 +128,17 @@ class AnchorMLPHead(PoseHead):
         coeffs = self.coefficients(avatar.anchor_inputs(pose, face, latents))  # [B, A, Bg + Bc]
         dev, dt, Bg = coeffs.device, coeffs.dtype, self.n_basis
         w_c = gm.sparse_interpolate(coeffs[..., Bg:], avatar.sparse_weights("ctrl_anchor", dev, dt))  # [B, C, Bc]
+        ctrl = gm.basis_delta(avatar.ctrl_basis, w_c)
         fast = interpolated_deltas_fast(  # inference on CPU: one pass, same numbers (tests)
             coeffs[..., :Bg], avatar.sparse_weights("gauss_anchor", dev, dt), avatar.gauss_pos_basis,
             avatar.scale_basis, avatar.rotation_basis, avatar.sh0_basis, avatar.shn_basis, n_sh_rest,
             self.anchor_sh0(avatar, coeffs[..., :Bg], latents))
         if fast is not None:
             pos, scale, rot, sh0, shn = fast
-            return PoseDeltas(ctrl=gm.basis_delta(avatar.ctrl_basis, w_c), position=pos, scale=scale, rotation=rot,
-                              sh0=sh0, shn=shn if n_sh_rest else None)
+            return PoseDeltas(ctrl=ctrl, position=pos, scale=scale, rotation=rot, sh0=sh0, shn=shn if n_sh_rest else None)
         w_g = gm.sparse_interpolate(coeffs[..., :Bg], avatar.sparse_weights("gauss_anchor", dev, dt))  # [B, G, Bg]
         return PoseDeltas(
-            ctrl=gm.basis_delta(avatar.ctrl_basis, w_c),
+            ctrl=ctrl,
             position=gm.basis_delta(avatar.gauss_pos_basis, w_g),
             scale=gm.basis_delta(avatar.scale_basis, w_g),
             rotation=gm.basis_delta(avatar.rotation_basis, w_g),
