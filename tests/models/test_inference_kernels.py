@@ -49,6 +49,13 @@ def _interp_reference(coeffs, W, bases, shn, n_rest, extra):
     return out
 
 
+def _packed(bases, shn):
+    """The bases side by side in one tensor, as GaussianAvatar.pack_bases_ lays them out (views of it)."""
+    G, K = shn.shape[:2]
+    flat = torch.cat([*bases, shn.reshape(G, K, -1)], 2)
+    return [flat[:, :, 0:3], flat[:, :, 3:6], flat[:, :, 6:10], flat[:, :, 10:13]], flat[:, :, 13:].unflatten(2, shn.shape[2:])
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("packed", [False, True])
 @pytest.mark.parametrize("n_rest", [0, 2, 3])
@@ -56,20 +63,14 @@ def _interp_reference(coeffs, W, bases, shn, n_rest, extra):
 def test_interpolated_deltas_match_interpolation_then_products(dtype, packed, n_rest, with_extra):
     coeffs, W, bases, shn, extra = _interp_case(dtype)
     extra = extra if with_extra else None
-    if packed:  # side by side, as GaussianAvatar.pack_bases_ lays them out
-        G, K = shn.shape[:2]
-        flat = torch.cat([*bases, shn.reshape(G, K, -1)], 2)
-        widths = [3, 3, 4, 3, shn.shape[2] * 3]
-        views, o = [], 0
-        for b, wd in zip([*bases, shn], widths):
-            views.append(flat[:, :, o:o + wd].unflatten(2, b.shape[2:]))
-            o += wd
-        *bases, shn = views
-        assert kernels.packed_bases(*bases, shn) is not None
-    else:
-        assert kernels.packed_bases(*bases, shn) is None
+    if packed:
+        bases, shn = _packed(bases, shn)
+    assert (kernels.packed_bases(*bases, shn) is not None) == packed
     with torch.no_grad():
         got = kernels.interpolated_deltas_fast(coeffs, W, *bases, shn, n_rest, extra)
+    if not packed:  # separate bases: the caller takes the per-basis products (the oracle below)
+        assert got is None
+        return
     want = _interp_reference(coeffs, W, bases, shn, n_rest, extra)
     tol = {"rtol": 1e-5, "atol": 1e-5} if dtype == torch.float32 else {"rtol": 1e-12, "atol": 1e-12}
     assert got is not None and len(got) == 5
@@ -80,6 +81,9 @@ def test_interpolated_deltas_match_interpolation_then_products(dtype, packed, n_
 
 def test_interpolated_deltas_decline_with_gradients_or_mixed_dtypes():
     coeffs, W, bases, shn, extra = _interp_case(torch.float32)
+    bases, shn = _packed(bases, shn)
+    with torch.no_grad():
+        assert kernels.interpolated_deltas_fast(coeffs, W, *bases, shn, 3, extra) is not None
     assert kernels.interpolated_deltas_fast(coeffs, W, *bases, shn, 3, extra) is None  # grad mode on
     with torch.no_grad():
         assert kernels.interpolated_deltas_fast(coeffs.double(), W, *bases, shn, 3, extra) is None
@@ -89,9 +93,8 @@ def test_interpolated_deltas_decline_with_gradients_or_mixed_dtypes():
 
 def test_packed_views_must_line_up():
     coeffs, W, bases, shn, _ = _interp_case(torch.float32)
-    G, K = shn.shape[:2]
-    flat = torch.cat([*bases, shn.reshape(G, K, -1)], 2)
-    views = [flat[:, :, 0:3], flat[:, :, 3:6], flat[:, :, 6:10], flat[:, :, 10:13], flat[:, :, 13:].unflatten(2, (3, 3))]
+    bases, shn = _packed(bases, shn)
+    views = [*bases, shn]
     assert kernels.packed_bases(*views) is not None
     swapped = [views[1], views[0], *views[2:]]  # wrong order: not the packed layout
     assert kernels.packed_bases(*swapped) is None
