@@ -230,13 +230,16 @@ def test_viewer_in_headless_chromium(driver, motion, tmp_path):
         # playing: frames some apart differ
         f0, a = v.frame, b.screenshot()
         diff_play, t0 = 0.0, time.time()
-        while time.time() - t0 < 40:  # new frames reach the page (slower while a fresh process compiles)
+        while time.time() - t0 < 90:  # new frames reach the page (slower while a fresh process compiles kernels)
             time.sleep(1.5)
             f1, c = v.frame, b.screenshot()
             diff_play = np.abs(a.astype(int) - c.astype(int))[180:, : W - PANEL].mean()
             if diff_play > 0.05:
                 break
-        assert f0 != f1 and v.frames_generated > 2
+        st = v._state
+        assert f0 != f1 and v.frames_generated > 2, (f"no new frame while playing: frame {f0} -> {f1}, "
+                                                     f"{v.frames_generated} generated, error {st.error!r}, "
+                                                     f"playing {st.playing}")
         assert diff_play > 0.05, diff_play
         # paused: the same frame, the same pixels
         v.pause()
