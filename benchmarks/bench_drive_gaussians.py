@@ -32,7 +32,6 @@ from gsavatar.drive.live import LiveGaussians
 from gsavatar.drive.motion import load_driving_motion
 from gsavatar.models import avatar as avatar_mod
 from gsavatar.models import gaussians as gm
-from gsavatar.utils.compiled import use_threads
 
 FORWARD_PARTS = {  # name -> (module, attribute); indented ones are called by "posing"; times are exclusive
     "pose head (anchor MLPs + bases)": (avatar_mod.GaussianAvatar, "pose_head"),
@@ -153,17 +152,13 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--warmup", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1, help="torch threads (the 2-core box: 1 or 2)")
-    ap.add_argument("--kernel-threads", type=int, default=None,
-                    help="threads of the compiled kernels (default: torch's; the viewer uses every core)")
     ap.add_argument("--sh0-only", action="store_true", help="colour from SH band 0 (no view direction)")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
-    use_threads(a.kernel_threads)
     times: dict[str, float] = defaultdict(float)
     _instrument(times)
-    results = {"threads": torch.get_num_threads(), "kernel_threads": a.kernel_threads or torch.get_num_threads(),
-               "mode": a.mode}
+    results = {"threads": torch.get_num_threads(), "mode": a.mode}
     d = Driver(a.run, DriveConfig(mode=a.mode, device="cpu", cameras="orbit"))
     motion = load_driving_motion(d.scene.capture.root, d.scene.capture.rig, d.fps)
     results["run"] = measure(d, motion, a.frames, a.warmup, a.sh0_only, times)
@@ -172,7 +167,7 @@ def main() -> None:
         dp = paper_driver(a.paper_dataset or Path(d.scene.dataset), a.mode)
         results["paper"] = measure(dp, motion, max(a.frames // 4, 5), 2, a.sh0_only, times)
         report("preset paper (untrained)", results["paper"])
-    print(f"\ntorch threads {results['threads']}, kernel threads {results['kernel_threads']}; load average {' '.join(f'{x:.2f}' for x in __import__('os').getloadavg())}")
+    print(f"\ntorch threads {results['threads']}; load average {' '.join(f'{x:.2f}' for x in __import__('os').getloadavg())}")
     if a.json:
         a.json.write_text(json.dumps(results, indent=1))
 

@@ -129,10 +129,10 @@ class AnchorMLPHead(PoseHead):
         dev, dt, Bg = coeffs.device, coeffs.dtype, self.n_basis
         w_c = gm.sparse_interpolate(coeffs[..., Bg:], avatar.sparse_weights("ctrl_anchor", dev, dt))  # [B, C, Bc]
         ctrl = gm.basis_delta(avatar.ctrl_basis, w_c)
+        d_a = self.anchor_sh0(avatar, coeffs[..., :Bg], latents)  # [B, A, 3] or None, both paths use it
         fast = interpolated_deltas_fast(  # inference on CPU: one pass, same numbers (tests)
             coeffs[..., :Bg], avatar.sparse_weights("gauss_anchor", dev, dt), avatar.gauss_pos_basis,
-            avatar.scale_basis, avatar.rotation_basis, avatar.sh0_basis, avatar.shn_basis, n_sh_rest,
-            self.anchor_sh0(avatar, coeffs[..., :Bg], latents))
+            avatar.scale_basis, avatar.rotation_basis, avatar.sh0_basis, avatar.shn_basis, n_sh_rest, d_a)
         if fast is not None:
             pos, scale, rot, sh0, shn = fast
             return PoseDeltas(ctrl=ctrl, position=pos, scale=scale, rotation=rot, sh0=sh0, shn=shn if n_sh_rest else None)
@@ -142,17 +142,15 @@ class AnchorMLPHead(PoseHead):
             position=gm.basis_delta(avatar.gauss_pos_basis, w_g),
             scale=gm.basis_delta(avatar.scale_basis, w_g),
             rotation=gm.basis_delta(avatar.rotation_basis, w_g),
-            sh0=self.sh0_delta(avatar, coeffs[..., :Bg], w_g, latents),
+            sh0=self.sh0_delta(avatar, w_g, d_a),
             shn=gm.basis_delta(avatar.shn_basis[:, :, :n_sh_rest], w_g) if n_sh_rest else None,
         )
 
     @staticmethod
-    def sh0_delta(avatar: GaussianAvatar, coeffs_g: Tensor, w_g: Tensor, latents: Tensor | None = None) -> Tensor:
-        """``<w_g, ΔΛ_sh0>`` per Gaussian, plus the anchors' ``<w_a, ΔΛ^a_sh0>`` (``ModelConfig.anchor_sh0``) and
-        ``l_a @ Λ^l_a`` (``ModelConfig.latent_sh0``) interpolated to the Gaussians.
-        coeffs_g [B, A, Bg], w_g [B, G, Bg], latents [B, A, L] or None -> [B, G, 3]"""
+    def sh0_delta(avatar: GaussianAvatar, w_g: Tensor, d_a: Tensor | None) -> Tensor:
+        """``<w_g, ΔΛ_sh0>`` per Gaussian, plus the anchors' SH0 deltas ``d_a`` (:meth:`anchor_sh0`) interpolated
+        to the Gaussians. w_g [B, G, Bg], d_a [B, A, 3] or None -> [B, G, 3]"""
         d = gm.basis_delta(avatar.sh0_basis, w_g)
-        d_a = AnchorMLPHead.anchor_sh0(avatar, coeffs_g, latents)
         if d_a is None:
             return d
         return d + gm.sparse_interpolate(d_a, avatar.sparse_weights("gauss_anchor", d_a.device, d_a.dtype))

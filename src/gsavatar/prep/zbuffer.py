@@ -380,7 +380,7 @@ def sample_view(P, Nrm, own_tri, faces, cp, img, u8, use_vis, tri_id, planes, ep
 
     P, Nrm [3, N] float64 texel points / unit normals (world), own_tri [N] int32 texel triangles
     (of faces [F, 3]), cp [CAM_FIELDS] float64 (:func:`pack_camera`), img [H*W, 4] (:func:`image_with_foreground`:
-    RGB float32 in [0, 1] or uint8 (``u8``: divided by 255 per tap), alpha the :func:`quad_foreground` flag), tri_id [Hc, Wc] int32 (the crop of
+    RGB float32 in [0, 1] or uint8 (``u8``: read as ``x / 255``), alpha the :func:`quad_foreground` flag), tri_id [Hc, Wc] int32 (the crop of
     the grid at cp's crop origin) + planes [F, 4] from :func:`rasterize` (used when ``use_vis``).
     Writes rgb [N, 3] float32 (only where seen) and ok [N] bool.
     """

@@ -29,22 +29,10 @@ def available() -> bool:
     return numba is not None
 
 
-_THREADS: int | None = None
-
-
-def use_threads(n: int | None) -> None:
-    """Give the compiled kernels ``n`` threads whatever torch's count (None: follow torch's again). The live
-    viewer keeps torch at one thread (its small ops do not gain from two, and torch's idle OpenMP workers
-    spin on the core numba's would use) and runs the kernels on every core."""
-    global _THREADS
-    _THREADS = None if n is None else max(1, int(n))
-
-
 def set_threads() -> int:
-    """Cap numba's threads at torch's (or at :func:`use_threads`'s count) and numba's own maximum; returns
-    the number used."""
+    """Cap numba's threads at torch's (and numba's own maximum); returns the number used."""
     torch_threads = torch.get_num_threads()
-    n = max(1, min(torch_threads if _THREADS is None else _THREADS, numba.config.NUMBA_NUM_THREADS))
+    n = max(1, min(torch_threads, numba.config.NUMBA_NUM_THREADS))
     if numba.get_num_threads() != n:
         numba.set_num_threads(n)
     if torch.get_num_threads() != torch_threads:  # a layer sharing torch's OpenMP runtime must not change it
