@@ -10,8 +10,10 @@ import os
 import shutil
 import socket
 import subprocess
+import sys
 import tempfile
 import time
+import traceback
 import urllib.request
 from pathlib import Path
 
@@ -197,6 +199,19 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _loop_state(v: AvatarViewer) -> str:
+    """The playback thread: alive, seconds since its last iteration and, when stalled, where it is."""
+    t = v._thread
+    if t is None or not t.is_alive():
+        return "playback thread not running"
+    idle = time.perf_counter() - v._state.loop_t
+    out = f"playback loop last ran {idle:.1f} s ago"
+    if idle > 2.0:
+        frame = sys._current_frames().get(t.ident)
+        out += " in:\n" + "".join(traceback.format_stack(frame)[-8:]) if frame is not None else ""
+    return out
+
+
 W, H, PANEL = 800, 600, 340  # page size; viser's control panel takes the right PANEL pixels
 
 
@@ -239,7 +254,7 @@ def test_viewer_in_headless_chromium(driver, motion, tmp_path):
                 break
         st = v._state
         state = (f"frames seen {sorted(seen)}, {v.frames_generated - n0} generated in {time.time() - t0:.1f} s "
-                 f"({st.fps_ema:.1f} frames/s), error {st.error!r}, playing {st.playing}")
+                 f"({st.fps_ema:.1f} frames/s), error {st.error!r}, playing {st.playing}, {_loop_state(v)}")
         assert len(seen) > 1 and v.frames_generated - n0 > 2, f"no new frame while playing: {state}"
         assert diff_play > 0.05, f"the page did not change while playing ({diff_play:.4f}): {state}"
         # paused: the same frame, the same pixels

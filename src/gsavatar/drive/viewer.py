@@ -98,6 +98,8 @@ class _Playback:
     fps_ema: float = 0.0
     error: str = ""
     stats_t: float = field(default_factory=time.perf_counter)
+    loop_t: float = 0.0
+    """perf_counter() at the start of the playback loop's latest iteration (0: not started)."""
 
 
 class AvatarViewer:
@@ -283,37 +285,52 @@ class AvatarViewer:
         last = time.perf_counter()
         while not self._stop.is_set():
             now = time.perf_counter()
-            with self._lock:
-                st = self._state
-                T = self.motion.num_frames
-                if st.playing:
-                    st.pos += (now - last) * self.motion.fps * self._speed
-                    if st.pos >= T:  # loop: the sequence starts again
-                        st.pos %= T
-                        st.restart = True
-                last = now
-                target = min(int(st.pos), T - 1)
-                eye = self._viewer_eye()
-                if eye is not None and (self._eye is None or np.abs(eye - self._eye).max() > 1e-3):
-                    self._eye = eye
-                    st.dirty = st.dirty or (not self.options.sh0_only and self.live.driver.sh_degree > 0)
-                todo = st.restart or target != st.shown or st.dirty
-                if todo:
-                    tic = time.perf_counter()
-                    try:
-                        self.generate(target)
-                        st.error = ""
-                    except Exception as e:  # noqa: BLE001 - shown in the page, playback pauses
-                        st.error = f"{type(e).__name__}: {e}"
-                        st.playing = False
-                        st.dirty = False
-                        st.shown = target
-                    dt = time.perf_counter() - tic
-                    st.fps_ema = 1 / dt if st.fps_ema == 0 else 0.9 * st.fps_ema + 0.1 / max(dt, 1e-6)
+            self._state.loop_t = now
+            try:
+                todo = self._tick(now, last)
+            except Exception as e:  # noqa: BLE001 - the loop outlives any one frame: shown in the page, playback pauses
+                with self._lock:
+                    self._state.error = f"{type(e).__name__}: {e}"
+                    self._state.playing = False
+                todo = False
+            last = now
             if todo:
-                self._sync_gui()
+                try:
+                    self._sync_gui()
+                except Exception as e:  # noqa: BLE001 - a client gone mid-update; the next frame syncs again
+                    self._state.error = f"GUI: {type(e).__name__}: {e}"
             period = 1.0 / (self.motion.fps * self._speed)
             self._stop.wait(max(0.002, period - (time.perf_counter() - now)) if not todo else 0.001)
+
+    def _tick(self, now: float, last: float) -> bool:
+        """One step of the playback clock: advance it, generate the frame it lands on when needed."""
+        with self._lock:
+            st = self._state
+            T = self.motion.num_frames
+            if st.playing:
+                st.pos += (now - last) * self.motion.fps * self._speed
+                if st.pos >= T:  # loop: the sequence starts again
+                    st.pos %= T
+                    st.restart = True
+            target = min(int(st.pos), T - 1)
+            eye = self._viewer_eye()
+            if eye is not None and (self._eye is None or np.abs(eye - self._eye).max() > 1e-3):
+                self._eye = eye
+                st.dirty = st.dirty or (not self.options.sh0_only and self.live.driver.sh_degree > 0)
+            todo = st.restart or target != st.shown or st.dirty
+            if todo:
+                tic = time.perf_counter()
+                try:
+                    self.generate(target)
+                    st.error = ""
+                except Exception as e:  # noqa: BLE001 - shown in the page, playback pauses
+                    st.error = f"{type(e).__name__}: {e}"
+                    st.playing = False
+                    st.dirty = False
+                    st.shown = target
+                dt = time.perf_counter() - tic
+                st.fps_ema = 1 / dt if st.fps_ema == 0 else 0.9 * st.fps_ema + 0.1 / max(dt, 1e-6)
+        return todo
 
     def _viewer_eye(self) -> np.ndarray | None:
         if self.server is None:
