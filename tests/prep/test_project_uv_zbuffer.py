@@ -306,6 +306,80 @@ def test_image_with_foreground_packs_rgb_and_the_flag():
         np.testing.assert_array_equal(out[:, 3] != 0, fg.ravel())
 
 
+@pytest.mark.parametrize("erode_px", [0, 1, 3, 5])
+def test_region_rgba_is_the_whole_image_buffer_cut_to_the_foreground(erode_px):
+    """The kernels' RGBA buffer of the mask's region equals the whole-image buffer there, and every flag
+    outside the region is 0 in the whole-image buffer (so rejecting taps outside the region is exact)."""
+    rng = np.random.default_rng(erode_px)
+    H, W = 60, 80
+    img = rng.integers(0, 256, (H, W, 3)).astype(np.uint8)
+    cases = {"inside": (slice(20, 40), slice(30, 55)), "at the border": (slice(0, 25), slice(60, 80)),
+             "whole": (slice(0, H), slice(0, W))}
+    for name, (ys, xs) in cases.items():
+        mask = np.zeros((H, W), np.float32)
+        mask[ys, xs] = (rng.uniform(size=mask[ys, xs].shape) > 0.1)
+        mask[ys.start + 2:ys.stop - 2, xs.start + 2:xs.stop - 2] = 1.0
+        full = zb.image_with_foreground(img, zb.quad_foreground(mask, (H, W), erode_px)).reshape(H, W, 4)
+        rgba, (x0, y0, w, h) = zb.region_rgba(img, mask, erode_px)
+        np.testing.assert_array_equal(rgba.reshape(h, w, 4), full[y0:y0 + h, x0:x0 + w], err_msg=name)
+        outside = np.ones((H, W), bool)
+        outside[y0:y0 + h, x0:x0 + w] = False
+        assert not full[..., 3][outside].any(), name
+        assert full[..., 3].any() and (name == "whole" or outside.any())
+    assert zb.region_rgba(img, np.zeros((H, W), np.float32), erode_px) is None
+    rgba, box = zb.region_rgba(img, None, erode_px)
+    assert box == (0, 0, W, H) and rgba[:, 3].all()
+    # a buffer from an earlier, larger view is reused
+    buf = np.empty((H * W, 4), np.uint8)
+    rgba2, _ = zb.region_rgba(img, mask, erode_px, out=buf)
+    assert np.shares_memory(rgba2, buf)
+
+
+def test_block_facing_bound_never_culls_a_facing_texel(tmp_path):
+    """_faces_away against the texels' own facing test, on blocks of a closed sphere scene seen from 6
+    sides (incl. zero normals and a negative min_cos); then project_frame with small blocks (culling active)
+    equals sample_view per view followed by fuse."""
+    from numba.typed import List
+
+    t, tm, cfg, cams = sphere_scene(tmp_path, size=96, tex=64)
+    views = _render_closed(t, cams)
+    proj = UVProjector(t.faces, tm, cfg)
+    zf = proj._zbuffer_views(t.vertices, views, 0)
+    P, Nrm = zf.P.copy(), zf.Nrm.copy()
+    Nrm[:, 5] = 0.0  # a zero normal: its block must never be culled
+    N, block = P.shape[1], 32
+    culled = 0
+    for min_cos in (0.1, 0.0, -0.3):
+        for s0 in range(0, N, block):
+            n = min(N, s0 + block) - s0
+            bnd = np.empty(8)
+            zb._block_bounds(P, Nrm, s0, n, bnd)
+            for cp in zf.cams:
+                if zb._faces_away(bnd, cp, min_cos):
+                    culled += 1
+                    tv = cp[12:15, None] - P[:, s0:s0 + n]
+                    nt = (Nrm[:, s0:s0 + n] * tv).sum(0)
+                    assert not np.any(nt >= min_cos * np.linalg.norm(tv, axis=0)), (s0, min_cos)
+                    assert not (s0 <= 5 < s0 + n)
+    assert culled > 0.2 * 3 * len(zf.cams) * (N // block)  # a sphere seen from around: many blocks face away
+    rgb, ok = np.zeros((len(zf.cams), N, 3), np.float32), np.zeros((len(zf.cams), N), bool)
+    u8 = zf.imgs[0].dtype == np.uint8
+    for k in range(len(zf.cams)):
+        zb.sample_view(P, Nrm, proj._z_tri, proj.faces, zf.cams[k], zf.imgs[k], u8, True, zf.tri_ids[k],
+                       zf.planes[k], cfg.occlusion_eps, cfg.min_cos, rgb[k], ok[k])
+    ref = [np.zeros((N, 3), np.float32), np.zeros(N, np.int64), np.zeros(N, np.int64)]
+    zb.fuse(rgb, ok, True, cfg.band[0], cfg.band[1], *ref)
+    out = [np.zeros((N + 3, 3), np.float32), np.zeros(N + 3, np.uint8), np.zeros(N + 3, np.uint8)]
+    perm = np.random.default_rng(0).permutation(N + 3)[:N]  # results land at out_index
+    for b in (block, 7):
+        zb.project_frame(P, Nrm, proj._z_tri, proj.faces, np.stack(zf.cams), List(zf.imgs), u8, True,
+                         List(zf.tri_ids), List(zf.planes), cfg.occlusion_eps, cfg.min_cos, True, cfg.band[0],
+                         cfg.band[1], b, perm, *out)
+        for r, o in zip(ref, out):
+            np.testing.assert_array_equal(o[perm], r.astype(o.dtype))
+    assert ok.sum() > 2000
+
+
 def test_read_image_keep_uint8_is_the_float_read_times_255(tmp_path):
     import cv2
 

@@ -180,10 +180,11 @@ def _fov_r2_limit(cam: Camera) -> float:
 # --------------------------------------------------------------------------- sampling
 class _ViewCtx(NamedTuple):
     cam: Camera
-    image: np.ndarray  # [H*W, 3] float32 (z-buffer path: [H*W, 4] uint8/float32, alpha = the quad foreground)
+    image: np.ndarray  # [H*W, 3] float32 (z-buffer path: [h*w, 4] uint8/float32 of `region`, alpha = the quad foreground)
     fg: np.ndarray | None  # [H*W] bool eroded foreground (None on the z-buffer path: in the image's alpha)
     center: np.ndarray  # [3]
     r2max: float
+    region: tuple[int, int, int, int] | None = None  # z-buffer path: (x0, y0, w, h) of the image in `image`
 
 
 def _sample_view(P: np.ndarray, Nrm: np.ndarray, v: _ViewCtx, scene, cfg: ProjectConfig,
@@ -335,7 +336,7 @@ class _ZFrame:
     num_views: int  # views consumed (including ones without foreground)
     index: list[int]  # position of each kept view among all views
     cams: list[np.ndarray]  # [CAM_FIELDS] float64 packed cameras
-    imgs: list[np.ndarray]  # [H*W, 4] float32 or uint8, alpha = quad foreground (zbuffer.image_with_foreground)
+    imgs: list[np.ndarray]  # [h*w, 4] float32 or uint8 of the view's region, alpha = quad foreground (zbuffer.region_rgba)
     tri_ids: list[np.ndarray]  # [Hg, Wg] int32 front triangle (-1 empty)
     planes: list[np.ndarray]  # [F, 4] float64 camera-space triangle planes
 
@@ -439,25 +440,26 @@ class UVProjector:
         if mask is not None and np.asarray(mask).shape[:2] != (cam.height, cam.width):
             raise ValueError(f"frame {frame}: mask of camera {cam.name!r} is {np.asarray(mask).shape}, calibration says {cam.height}x{cam.width}")
         m = mask if mask is None or np.asarray(mask).ndim == 2 else np.asarray(mask)[..., 0]
-        if quad:
-            from gsavatar.prep.zbuffer import quad_foreground
+        key = (cam.name, tuple(np.asarray(cam.dist, dtype=np.float64).tolist()), cam.width, cam.height, tuple(cam.K.ravel().tolist()))
+        if quad:  # the z-buffer kernels read the foreground from the alpha channel of the mask's region of the image
+            from gsavatar.prep.zbuffer import region_rgba
 
-            fg = quad_foreground(m, (cam.height, cam.width), self.config.erode_px, self.config.mask_threshold)
-        else:
-            fg = erode_mask(m, (cam.height, cam.width), self.config.erode_px, self.config.mask_threshold)
+            got = region_rgba(np.asarray(image[..., :3], dtype=np.uint8 if image.dtype == np.uint8 else np.float32), m,
+                              self.config.erode_px, self.config.mask_threshold, self._rgba.get(slot) if slot >= 0 else None)
+            if got is None:
+                return None
+            img, region = got
+            buf = self._rgba.get(slot)
+            if slot >= 0 and (buf is None or buf.dtype != img.dtype or img.size > buf.size):
+                self._rgba[slot] = img  # refilled next frame (the kernels are done with it by then)
+            if key not in self._r2:
+                self._r2[key] = _fov_r2_limit(cam)
+            return _ViewCtx(cam, img, None, np.asarray(cam.center, dtype=np.float64), self._r2[key], region)
+        fg = erode_mask(m, (cam.height, cam.width), self.config.erode_px, self.config.mask_threshold)
         if not fg.any():
             return None
-        key = (cam.name, tuple(np.asarray(cam.dist, dtype=np.float64).tolist()), cam.width, cam.height, tuple(cam.K.ravel().tolist()))
         if key not in self._r2:
             self._r2[key] = _fov_r2_limit(cam)
-        if quad:  # the z-buffer kernels read the foreground from the image's alpha channel
-            from gsavatar.prep.zbuffer import image_with_foreground
-
-            img = image_with_foreground(np.asarray(image[..., :3], dtype=np.uint8 if image.dtype == np.uint8 else np.float32), fg,
-                                        self._rgba.get(slot) if slot >= 0 else None)
-            if slot >= 0:
-                self._rgba[slot] = img  # refilled next frame (the kernels are done with it by then)
-            return _ViewCtx(cam, img, None, np.asarray(cam.center, dtype=np.float64), self._r2[key])
         img = np.ascontiguousarray(image[..., :3], dtype=np.uint8 if image.dtype == np.uint8 else np.float32).reshape(-1, 3)
         return _ViewCtx(cam, img, fg.ravel(), np.asarray(cam.center, dtype=np.float64), self._r2[key])
 
@@ -505,7 +507,7 @@ class UVProjector:
             else:
                 tri_id, planes = np.full((1, 1), -1, np.int32), np.zeros((1, 4))
             out.index.append(c)
-            out.cams.append(zb.pack_camera(cam, float(ctx.r2max), grid, crop))
+            out.cams.append(zb.pack_camera(cam, float(ctx.r2max), grid, crop, ctx.region))
             out.imgs.append(ctx.image)
             out.tri_ids.append(tri_id)
             out.planes.append(planes)
@@ -606,27 +608,18 @@ class UVProjector:
         cfg = self.config
         zf = self._zbuffer_views(vertices, views, frame)
         N = self.num_texels
-        col = np.zeros((N, 3), np.float32)
-        cnt = np.zeros(N, np.int64)
-        sn = np.zeros(N, np.int64)
-        if zf.index and N:
-            u8 = all(im.dtype == np.uint8 for im in zf.imgs)
-            imgs = zf.imgs if u8 else [im if im.dtype == np.float32 else im.astype(np.float32) / np.float32(255)
-                                       for im in zf.imgs]
-            F = max(p.shape[0] for p in zf.planes)
-            planes = np.zeros((len(zf.planes), F, 4))
-            for k, p in enumerate(zf.planes):
-                planes[k, :len(p)] = p
-            zb.project_frame(zf.P, zf.Nrm, self._z_tri, self.faces, np.stack(zf.cams), List(imgs), u8, True,
-                             List(zf.tri_ids), planes, float(cfg.occlusion_eps), float(cfg.min_cos),
-                             cfg.fusion == "median_band", float(cfg.band[0]), float(cfg.band[1]), BLOCK, col, cnt, sn)
         S = self.size
         texture = np.zeros((S * S, 3), dtype=np.float32)
         count = np.zeros(S * S, dtype=np.uint8)
         seen = np.zeros(S * S, dtype=np.uint8)
-        texture[self._z_texels] = col
-        count[self._z_texels] = np.minimum(cnt, 255)
-        seen[self._z_texels] = np.minimum(sn, 255)
+        if zf.index and N:
+            u8 = all(im.dtype == np.uint8 for im in zf.imgs)
+            imgs = zf.imgs if u8 else [im if im.dtype == np.float32 else im.astype(np.float32) / np.float32(255)
+                                       for im in zf.imgs]
+            zb.project_frame(zf.P, zf.Nrm, self._z_tri, self.faces, np.stack(zf.cams), List(imgs), u8, True,
+                             List(zf.tri_ids), List(zf.planes), float(cfg.occlusion_eps), float(cfg.min_cos),
+                             cfg.fusion == "median_band", float(cfg.band[0]), float(cfg.band[1]), BLOCK, self._z_texels,
+                             texture, count, seen)
         valid = count > 0
         return TexelFusion(texture.reshape(S, S, 3), count.reshape(S, S), seen.reshape(S, S), valid.reshape(S, S))
 
