@@ -426,9 +426,11 @@ class UVProjector:
 
     def _view_ctx(self, view: View, frame, keep_uint8: bool = False, quad: bool = False, slot: int = -1) -> _ViewCtx | None:
         """Checked view: image [H*W, 3] (float32 in [0, 1]; uint8 kept as is when ``keep_uint8``), eroded
-        foreground [H*W] bool (``quad``: :func:`~gsavatar.prep.zbuffer.quad_foreground`), camera centre and
-        distortion radius bound. None when the mask has no foreground. ``slot``: the view's position in the
-        frame; with ``quad`` its RGBA image is written into the buffer of that slot from the previous frame."""
+        foreground [H*W] bool, camera centre and distortion radius bound. None when the mask has no foreground.
+        ``quad`` (the z-buffer path): instead, the RGBA buffer of the mask's region with the
+        :func:`~gsavatar.prep.zbuffer.quad_foreground` flag as alpha (:func:`~gsavatar.prep.zbuffer.region_rgba`)
+        and that region; ``slot``: the view's position in the frame, whose buffer from the previous frame is
+        refilled."""
         cam, image, mask = view
         image = np.asarray(image)
         if image.dtype == np.uint8 and not keep_uint8:
