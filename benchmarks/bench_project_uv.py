@@ -8,7 +8,9 @@ Not a test. For each texture size, visibility path (``--visibility``: the compil
 both see the same machine load) and their ratio, the time through gsavatar's readers,
 texels/s, and the error of the fused texture against the ground-truth texture (PSNR on
 texels seen by >= 2 views; ``median_band`` and, for comparison, ``mean`` fusion).
-Prints a markdown table.
+Prints a markdown table. Then (unless ``--no-stage-loop``) the stage's own loop at the largest size
+with the most threads: read a frame through gsavatar's readers and project it, frame after frame, with
+and without the next frame read in a background thread (``prefetched_frame_views``).
 
 Inputs:
 
@@ -25,7 +27,7 @@ Inputs:
     PYTHONPATH=src .venv/bin/python benchmarks/bench_project_uv.py
     PYTHONPATH=src .venv/bin/python benchmarks/bench_project_uv.py --capture /data/synth_a --frames 0 10
     OMP_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python benchmarks/bench_project_uv.py --thuman4 --sizes 512 1024 \
-        --threads 1 2 --visibility zbuffer rays --no-mean
+        --threads 1 2 --visibility zbuffer rays --no-mean --frames 0 1 2 3
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ import numpy as np
 
 from gsavatar.data_schema.capture import Camera, Capture
 from gsavatar.geometry.camera import look_at, pixel_rays
-from gsavatar.prep.project_uv import ProjectConfig, UVProjector, load_frame_views
+from gsavatar.prep.project_uv import ProjectConfig, UVProjector, load_frame_views, prefetched_frame_views
 from gsavatar.prep.uv_atlas import build_texel_map, ensure_uvs
 from gsavatar.geometry.primitives import icosphere
 
@@ -152,6 +154,8 @@ def main() -> None:
     ap.add_argument("--jpeg", action="store_true", help="built-in scene: JPEG images (masks stay PNG)")
     ap.add_argument("--thuman4", action="store_true", help="built-in scene of THuman4.0's size: 24 views of 1330x1150 JPEG")
     ap.add_argument("--no-mean", action="store_true", help="skip the 'mean' fusion comparison")
+    ap.add_argument("--no-stage-loop", action="store_true",
+                    help="skip timing the stage's read + project loop with and without reading the next frame ahead")
     ap.add_argument("--visibility", nargs="+", default=["zbuffer"], choices=["zbuffer", "rays"],
                     help="visibility paths to time (ProjectConfig.visibility)")
     ap.add_argument("--threads", type=int, nargs="+", default=[1],
@@ -248,6 +252,28 @@ def main() -> None:
                 s, d = float(np.mean(secs)), float(np.mean(decs))
                 rows.append((size, vis, nth if vis == "zbuffer" else 1, t_map, proj.num_texels, s, d, io, proj.num_texels / s,
                              float(np.mean(seen2)), float(np.mean(p_med)), float(np.mean(p_mean)) if p_mean else float("nan")))
+    # the stage's loop (read a frame, project it), with the next frame read in a background thread or not;
+    # largest size, z-buffer path, most threads
+    stage = None
+    if "zbuffer" in args.visibility and not args.no_stage_loop:
+        size, nth = max(args.sizes), max(args.threads)
+        torch.set_num_threads(nth)
+        tm = build_texel_map(template, size=size, gutter=ProjectConfig().gutter_px)
+        proj = UVProjector(template.faces, tm, ProjectConfig(tex_size=size), template.face_uv_mask)
+        proj.project(posed[0], views_of[frames[0]], frame=frames[0])
+        pose_of = dict(zip(frames, posed))
+        loop_s = {}
+        for rep in range(2):
+            for ahead in (False, True):
+                t0 = time.perf_counter()
+                for f, views in prefetched_frame_views(cap, frames, cams, uint8=True, ahead=ahead):
+                    proj.project(pose_of[f], views, frame=f)
+                loop_s.setdefault(ahead, []).append((time.perf_counter() - t0) / len(frames))
+        seq, pre = min(loop_s[False]), min(loop_s[True])
+        stage = {"tex_size": size, "threads": nth, "read_then_project_s_per_frame": seq,
+                 "prefetched_s_per_frame": pre, "speedup": seq / pre}
+        print(f"\n# stage loop at {size}^2, {nth} thread(s), {len(frames)} frames (best of 2): read then project "
+              f"{seq:.3f} s/frame, next frame read meanwhile {pre:.3f} s/frame ({seq / pre:.2f}x)")
     torch.set_num_threads(threads0)
 
     print()
@@ -264,7 +290,8 @@ def main() -> None:
                 "read_s_per_frame", "texels_per_s", "seen_ge2_fraction", "psnr_median_band_db", "psnr_mean_db")
         out = {"source": src, "machine": f"{platform.processor() or platform.machine()}, python {platform.python_version()}",
                "frames": list(map(int, frames)), "views": len(cams),
-               "rows": [{**dict(zip(keys, r)), "project_over_raw_decode": r[5] / r[6]} for r in rows]}
+               "rows": [{**dict(zip(keys, r)), "project_over_raw_decode": r[5] / r[6]} for r in rows],
+               "stage_loop": stage}
         args.json.write_text(json.dumps(out, indent=1, default=float, allow_nan=True))
     if tmp is not None:
         tmp.cleanup()

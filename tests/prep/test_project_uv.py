@@ -494,6 +494,39 @@ def test_load_frame_views_roundtrip(tmp_path):
         load_frame_views(cap, 3)
 
 
+def test_prefetched_frame_views_equal_sequential_reads_and_raise_at_their_frame(tmp_path):
+    from gsavatar.data_schema.capture import Capture
+    from gsavatar.prep.project_uv import prefetched_frame_views
+    from gsavatar.utils.errors import SchemaError
+    from gsavatar.utils.io import write_image
+
+    V, F, C = quad((0, 0, 0), 1.0, (0, 0), (1, 1))
+    cams = {n: make_cam(n, e, size=48, f=60) for e, n in CAMS3[:2]}
+    for fr in range(4):
+        for n, cam in cams.items():
+            img, mask = render(V, F, C, cam)
+            write_image(tmp_path / "images" / n / f"{fr:08d}.png", np.clip(img * (0.5 + 0.1 * fr), 0, 1))
+            write_image(tmp_path / "masks" / n / f"{fr:08d}.png", mask)
+    cap = Capture(tmp_path, 30.0, 4, cams, None, None, None, {}, {n: ".png" for n in cams})  # type: ignore[arg-type]
+    for ahead in (True, False):
+        got = list(prefetched_frame_views(cap, [2, 0, 3], uint8=True, ahead=ahead))
+        assert [f for f, _ in got] == [2, 0, 3]
+        for f, views in got:
+            for (c, img, m), (c2, img2, m2) in zip(views, load_frame_views(cap, f, uint8=True)):
+                assert c.name == c2.name and img.dtype == np.uint8
+                np.testing.assert_array_equal(img, img2)
+                np.testing.assert_array_equal(m, m2)
+    write_image(tmp_path / "images" / "c1" / "00000003.png", np.zeros((32, 48, 3)))  # frame 3 is bad
+    for ahead in (True, False):
+        it = prefetched_frame_views(cap, [0, 3], ahead=ahead)
+        assert next(it)[0] == 0  # frame 0 arrives although frame 3, read meanwhile, is bad
+        with pytest.raises(SchemaError, match="c1"):
+            next(it)
+    it = prefetched_frame_views(cap, [0, 1, 3])
+    next(it)
+    it.close()  # stopping early waits for the read in flight and drops it
+
+
 # --------------------------------------------------------------------------- closed mesh with an xatlas atlas
 def test_closed_mesh_with_xatlas_atlas(tmp_path):
     """A self-occluding closed mesh (sphere + 'arm' in front of it), xatlas UVs with seams,

@@ -37,7 +37,7 @@ view's images at a time when ``views`` is a generator (:func:`iter_frame_views`)
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, NamedTuple
@@ -794,3 +794,26 @@ def load_frame_views(capture: Capture, frame: int, cams: Sequence[str] | None = 
     """All views of one frame: list of (camera, image [H,W,3] float32 [0,1], mask [H,W] float32 [0,1])
     (``uint8``: as :func:`iter_frame_views`)."""
     return list(iter_frame_views(capture, frame, cams, uint8))
+
+
+def prefetched_frame_views(capture: Capture, frames: Sequence[int], cams: Sequence[str] | None = None,
+                           uint8: bool = False, ahead: bool = True) -> Iterator[tuple[int, list[View]]]:
+    """(frame, :func:`load_frame_views`) for each of ``frames``, reading the next frame in a background thread
+    while the caller works on the current one (``ahead``; OpenCV's decoders and the z-buffer kernels release
+    the GIL, so on two cores reading overlaps projection). At most two frames' views are in memory. A reading
+    error is raised when its frame is reached, as without prefetching; a consumer that stops early leaves at
+    most one read running, which finishes and is dropped."""
+    frames = list(frames)
+    if not ahead or len(frames) < 2:
+        for f in frames:
+            yield f, load_frame_views(capture, f, cams, uint8)
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gsavatar-read") as pool:
+        nxt = pool.submit(load_frame_views, capture, frames[0], cams, uint8)
+        for k, f in enumerate(frames):
+            views = nxt.result()
+            nxt = pool.submit(load_frame_views, capture, frames[k + 1], cams, uint8) if k + 1 < len(frames) else None
+            yield f, views
+            views = None

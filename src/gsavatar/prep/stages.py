@@ -101,7 +101,7 @@ def load_atlas_face_mask(root: Path) -> np.ndarray | None:
 
 # --------------------------------------------------------------------------- project-uv
 def _project_shard(capture_dir: str, dataset: str, cfg_json: dict, cams: list[str], frames: list[int]) -> dict[str, np.ndarray]:
-    from gsavatar.prep.project_uv import UVProjector, iter_frame_views
+    from gsavatar.prep.project_uv import UVProjector, prefetched_frame_views
 
     cap = load_capture(capture_dir)
     tm, _, _ = load_atlas(Path(dataset))
@@ -109,8 +109,8 @@ def _project_shard(capture_dir: str, dataset: str, cfg_json: dict, cams: list[st
     proj = UVProjector(cap.template.faces, tm, cfg, load_atlas_face_mask(Path(dataset)))
     posed = ShardReader(stage_dir(Path(dataset), "pose-template"))
     tex, cnt, seen = [], [], []
-    for f in frames:
-        out = proj.project(posed.get(f)["vertices"], iter_frame_views(cap, f, cams, uint8=True), frame=f)
+    for f, views in prefetched_frame_views(cap, frames, cams, uint8=True):  # the next frame is read meanwhile
+        out = proj.project(posed.get(f)["vertices"], views, frame=f)
         tex.append(out.texture.astype(np.float16))
         cnt.append(out.count)
         seen.append(out.seen)
