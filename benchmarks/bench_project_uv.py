@@ -8,7 +8,7 @@ Not a test. For each texture size, visibility path (``--visibility``: the compil
 both see the same machine load) and their ratio, the time through gsavatar's readers,
 texels/s, and the error of the fused texture against the ground-truth texture (PSNR on
 texels seen by >= 2 views; ``median_band`` and, for comparison, ``mean`` fusion).
-Prints a markdown table. Then (unless ``--no-stage-loop``) the stage's own loop at the largest size
+Prints a markdown table, where one frame's projection goes (``--no-parts`` skips it), and (unless ``--no-stage-loop``) the stage's own loop at the largest size
 with the most threads: read a frame through gsavatar's readers and project it, frame after frame, with
 and without the next frame read in a background thread (``prefetched_frame_views``).
 
@@ -142,6 +142,40 @@ def capture_gt(root: Path, frame: int, size: int) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- main
+def project_parts(proj: UVProjector, vertices: np.ndarray, views: list, reps: int = 5) -> dict[str, float]:
+    """Seconds (median of ``reps``) of the parts of one z-buffer projection: the whole ``project``, the RGBA
+    region buffers of all views, texel surface + rasterization (the rest of the per-view set-up), and the
+    fused sampling + fusion kernel (called as ``project`` calls it)."""
+    from numba.typed import List
+
+    from gsavatar.prep import zbuffer as zb
+    from gsavatar.prep.project_uv import BLOCK
+
+    cfg = proj.config
+
+    def med(fn) -> float:
+        fn()
+        ts = []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            fn()
+            ts.append(time.perf_counter() - t0)
+        return float(np.median(ts))
+
+    total = med(lambda: proj.project(vertices, views))
+    ctx = med(lambda: [proj._view_ctx(v, 0, keep_uint8=True, quad=True, slot=i) for i, v in enumerate(views)])
+    setup = med(lambda: proj._zbuffer_views(vertices, views, 0))
+    zf = proj._zbuffer_views(vertices, views, 0)
+    S = proj.size
+    out = (np.zeros((S * S, 3), np.float32), np.zeros(S * S, np.uint8), np.zeros(S * S, np.uint8))
+    kernel = med(lambda: zb.project_frame(zf.P, zf.Nrm, proj._z_tri, proj.faces, np.stack(zf.cams), List(zf.imgs),
+                                          zf.imgs[0].dtype == np.uint8, True, List(zf.tri_ids), List(zf.planes),
+                                          float(cfg.occlusion_eps), float(cfg.min_cos), cfg.fusion == "median_band",
+                                          float(cfg.band[0]), float(cfg.band[1]), BLOCK, proj._z_texels, *out))
+    return {"project": total, "RGBA region buffers": ctx, "surface + rasterization": setup - ctx,
+            "sampling + fusion kernel": kernel, "rest": total - setup - kernel}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--capture", type=Path, help="synthetic capture directory (with gt/textures); default: built-in scene")
@@ -154,6 +188,7 @@ def main() -> None:
     ap.add_argument("--jpeg", action="store_true", help="built-in scene: JPEG images (masks stay PNG)")
     ap.add_argument("--thuman4", action="store_true", help="built-in scene of THuman4.0's size: 24 views of 1330x1150 JPEG")
     ap.add_argument("--no-mean", action="store_true", help="skip the 'mean' fusion comparison")
+    ap.add_argument("--no-parts", action="store_true", help="skip the per-part timing of one frame's projection")
     ap.add_argument("--no-stage-loop", action="store_true",
                     help="skip timing the stage's read + project loop with and without reading the next frame ahead")
     ap.add_argument("--visibility", nargs="+", default=["zbuffer"], choices=["zbuffer", "rays"],
@@ -274,6 +309,15 @@ def main() -> None:
                  "prefetched_s_per_frame": pre, "speedup": seq / pre}
         print(f"\n# stage loop at {size}^2, {nth} thread(s), {len(frames)} frames (best of 2): read then project "
               f"{seq:.3f} s/frame, next frame read meanwhile {pre:.3f} s/frame ({seq / pre:.2f}x)")
+    parts = None
+    if "zbuffer" in args.visibility and not args.no_parts:
+        size = max(args.sizes)
+        torch.set_num_threads(min(args.threads))
+        tm = build_texel_map(template, size=size, gutter=ProjectConfig().gutter_px)
+        proj = UVProjector(template.faces, tm, ProjectConfig(tex_size=size), template.face_uv_mask)
+        parts = project_parts(proj, posed[-1], views_of[frames[-1]])
+        print(f"\n# where one frame's projection goes at {size}^2, {min(args.threads)} thread(s) (median of 5): "
+              + ", ".join(f"{k} {v:.3f} s" for k, v in parts.items()))
     torch.set_num_threads(threads0)
 
     print()
@@ -291,7 +335,7 @@ def main() -> None:
         out = {"source": src, "machine": f"{platform.processor() or platform.machine()}, python {platform.python_version()}",
                "frames": list(map(int, frames)), "views": len(cams),
                "rows": [{**dict(zip(keys, r)), "project_over_raw_decode": r[5] / r[6]} for r in rows],
-               "stage_loop": stage}
+               "stage_loop": stage, "parts_s": parts}
         args.json.write_text(json.dumps(out, indent=1, default=float, allow_nan=True))
     if tmp is not None:
         tmp.cleanup()
