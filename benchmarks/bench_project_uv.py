@@ -142,38 +142,39 @@ def capture_gt(root: Path, frame: int, size: int) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- main
-def project_parts(proj: UVProjector, vertices: np.ndarray, views: list, reps: int = 5) -> dict[str, float]:
-    """Seconds (median of ``reps``) of the parts of one z-buffer projection: the whole ``project``, the RGBA
-    region buffers of all views, texel surface + rasterization (the rest of the per-view set-up), and the
-    fused sampling + fusion kernel (called as ``project`` calls it)."""
+def project_parts(proj: UVProjector, vertices: np.ndarray, views: list, reps: int = 7) -> dict[str, float]:
+    """Seconds (medians over ``reps`` interleaved repeats) of the parts of one z-buffer projection: the whole
+    ``project``, the RGBA region buffers of all views, texel surface + rasterization (the rest of the per-view
+    set-up), and the fused sampling + fusion kernel (called as ``project`` calls it)."""
     from numba.typed import List
 
     from gsavatar.prep import zbuffer as zb
     from gsavatar.prep.project_uv import BLOCK
 
     cfg = proj.config
-
-    def med(fn) -> float:
-        fn()
-        ts = []
-        for _ in range(reps):
+    S = proj.size
+    zf = proj._zbuffer_views(vertices, views, 0)
+    out = (np.zeros((S * S, 3), np.float32), np.zeros(S * S, np.uint8), np.zeros(S * S, np.uint8))
+    parts = {
+        "project": lambda: proj.project(vertices, views),
+        "ctx": lambda: [proj._view_ctx(v, 0, keep_uint8=True, quad=True, slot=i) for i, v in enumerate(views)],
+        "setup": lambda: proj._zbuffer_views(vertices, views, 0),
+        "kernel": lambda: zb.project_frame(zf.P, zf.Nrm, proj._z_tri, proj.faces, np.stack(zf.cams), List(zf.imgs),
+                                           zf.imgs[0].dtype == np.uint8, True, List(zf.tri_ids), List(zf.planes),
+                                           float(cfg.occlusion_eps), float(cfg.min_cos), cfg.fusion == "median_band",
+                                           float(cfg.band[0]), float(cfg.band[1]), BLOCK, proj._z_texels, *out),
+    }
+    ts: dict[str, list[float]] = {k: [] for k in parts}
+    for fn in parts.values():
+        fn()  # warm-up
+    for _ in range(reps):
+        for k, fn in parts.items():
             t0 = time.perf_counter()
             fn()
-            ts.append(time.perf_counter() - t0)
-        return float(np.median(ts))
-
-    total = med(lambda: proj.project(vertices, views))
-    ctx = med(lambda: [proj._view_ctx(v, 0, keep_uint8=True, quad=True, slot=i) for i, v in enumerate(views)])
-    setup = med(lambda: proj._zbuffer_views(vertices, views, 0))
-    zf = proj._zbuffer_views(vertices, views, 0)
-    S = proj.size
-    out = (np.zeros((S * S, 3), np.float32), np.zeros(S * S, np.uint8), np.zeros(S * S, np.uint8))
-    kernel = med(lambda: zb.project_frame(zf.P, zf.Nrm, proj._z_tri, proj.faces, np.stack(zf.cams), List(zf.imgs),
-                                          zf.imgs[0].dtype == np.uint8, True, List(zf.tri_ids), List(zf.planes),
-                                          float(cfg.occlusion_eps), float(cfg.min_cos), cfg.fusion == "median_band",
-                                          float(cfg.band[0]), float(cfg.band[1]), BLOCK, proj._z_texels, *out))
-    return {"project": total, "RGBA region buffers": ctx, "surface + rasterization": setup - ctx,
-            "sampling + fusion kernel": kernel, "rest": total - setup - kernel}
+            ts[k].append(time.perf_counter() - t0)
+    m = {k: float(np.median(v)) for k, v in ts.items()}
+    return {"project": m["project"], "RGBA region buffers": m["ctx"], "surface + rasterization": m["setup"] - m["ctx"],
+            "sampling + fusion kernel": m["kernel"], "rest": m["project"] - m["setup"] - m["kernel"]}
 
 
 def main() -> None:
@@ -288,27 +289,31 @@ def main() -> None:
                 rows.append((size, vis, nth if vis == "zbuffer" else 1, t_map, proj.num_texels, s, d, io, proj.num_texels / s,
                              float(np.mean(seen2)), float(np.mean(p_med)), float(np.mean(p_mean)) if p_mean else float("nan")))
     # the stage's loop (read a frame, project it), with the next frame read in a background thread or not;
-    # largest size, z-buffer path, most threads
+    # largest size, z-buffer path, each thread count; 3 alternating repeats, medians
     stage = None
     if "zbuffer" in args.visibility and not args.no_stage_loop:
-        size, nth = max(args.sizes), max(args.threads)
-        torch.set_num_threads(nth)
+        size = max(args.sizes)
         tm = build_texel_map(template, size=size, gutter=ProjectConfig().gutter_px)
         proj = UVProjector(template.faces, tm, ProjectConfig(tex_size=size), template.face_uv_mask)
         proj.project(posed[0], views_of[frames[0]], frame=frames[0])
         pose_of = dict(zip(frames, posed))
-        loop_s = {}
-        for rep in range(2):
-            for ahead in (False, True):
-                t0 = time.perf_counter()
-                for f, views in prefetched_frame_views(cap, frames, cams, uint8=True, ahead=ahead):
-                    proj.project(pose_of[f], views, frame=f)
-                loop_s.setdefault(ahead, []).append((time.perf_counter() - t0) / len(frames))
-        seq, pre = min(loop_s[False]), min(loop_s[True])
-        stage = {"tex_size": size, "threads": nth, "read_then_project_s_per_frame": seq,
-                 "prefetched_s_per_frame": pre, "speedup": seq / pre}
-        print(f"\n# stage loop at {size}^2, {nth} thread(s), {len(frames)} frames (best of 2): read then project "
-              f"{seq:.3f} s/frame, next frame read meanwhile {pre:.3f} s/frame ({seq / pre:.2f}x)")
+        loop_s: dict[tuple[int, bool], list[float]] = {}
+        for rep in range(3):
+            for nth in args.threads:
+                torch.set_num_threads(nth)
+                for ahead in (False, True):
+                    t0 = time.perf_counter()
+                    for f, views in prefetched_frame_views(cap, frames, cams, uint8=True, ahead=ahead):
+                        proj.project(pose_of[f], views, frame=f)
+                    loop_s.setdefault((nth, ahead), []).append((time.perf_counter() - t0) / len(frames))
+        stage = []
+        print(f"\n# the stage's loop at {size}^2 over frames {frames} (median of 3, alternating):")
+        for nth in args.threads:
+            seq, pre = float(np.median(loop_s[nth, False])), float(np.median(loop_s[nth, True]))
+            stage.append({"tex_size": size, "threads": nth, "read_then_project_s_per_frame": seq,
+                          "prefetched_s_per_frame": pre, "speedup": seq / pre})
+            print(f"#   {nth} thread(s): read then project {seq:.3f} s/frame, next frame read meanwhile {pre:.3f} s/frame "
+                  f"({seq / pre:.2f}x)")
     parts = None
     if "zbuffer" in args.visibility and not args.no_parts:
         size = max(args.sizes)
@@ -316,7 +321,7 @@ def main() -> None:
         tm = build_texel_map(template, size=size, gutter=ProjectConfig().gutter_px)
         proj = UVProjector(template.faces, tm, ProjectConfig(tex_size=size), template.face_uv_mask)
         parts = project_parts(proj, posed[-1], views_of[frames[-1]])
-        print(f"\n# where one frame's projection goes at {size}^2, {min(args.threads)} thread(s) (median of 5): "
+        print(f"\n# where one frame's projection goes at {size}^2, {min(args.threads)} thread(s) (medians of 7): "
               + ", ".join(f"{k} {v:.3f} s" for k, v in parts.items()))
     torch.set_num_threads(threads0)
 
