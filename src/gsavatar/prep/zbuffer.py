@@ -539,10 +539,8 @@ def _fuse_one(s, row0, k, median_band, lo, hi, L, idx, keep, col, count, seen, i
         for m in range(k):
             lm = L[m]
             r = 0
-            for q in range(m):
-                r += L[q] <= lm
-            for q in range(m + 1, k):
-                r += L[q] < lm
+            for q in range(k):  # one branch-free loop (vectorised): smaller, or equal and earlier
+                r += (L[q] < lm) | ((L[q] == lm) & (q < m))
             idx[r] = m
         med = (L[idx[(k - 1) // 2]] + L[idx[k // 2]]) / 2
         for m in range(k):
