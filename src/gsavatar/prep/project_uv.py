@@ -187,6 +187,12 @@ class _ViewCtx(NamedTuple):
     region: tuple[int, int, int, int] | None = None  # z-buffer path: (x0, y0, w, h) of the image in `image`
 
 
+def _camera_key(cam: Camera) -> tuple:
+    """What the per-camera caches (distortion radius bound, pinhole grid) depend on."""
+    return (cam.name, tuple(np.asarray(cam.dist, dtype=np.float64).tolist()), cam.width, cam.height,
+            tuple(cam.K.ravel().tolist()))
+
+
 def _sample_view(P: np.ndarray, Nrm: np.ndarray, v: _ViewCtx, scene, cfg: ProjectConfig,
                  rgb: np.ndarray, ok: np.ndarray) -> None:
     """Sample one view for a chunk of texel points P [3, n] (world) with unit normals Nrm [3, n];
@@ -442,7 +448,9 @@ class UVProjector:
         if mask is not None and np.asarray(mask).shape[:2] != (cam.height, cam.width):
             raise ValueError(f"frame {frame}: mask of camera {cam.name!r} is {np.asarray(mask).shape}, calibration says {cam.height}x{cam.width}")
         m = mask if mask is None or np.asarray(mask).ndim == 2 else np.asarray(mask)[..., 0]
-        key = (cam.name, tuple(np.asarray(cam.dist, dtype=np.float64).tolist()), cam.width, cam.height, tuple(cam.K.ravel().tolist()))
+        key = _camera_key(cam)
+        if key not in self._r2:
+            self._r2[key] = _fov_r2_limit(cam)
         if quad:  # the z-buffer kernels read the foreground from the alpha channel of the mask's region of the image
             from gsavatar.prep.zbuffer import region_rgba
 
@@ -454,14 +462,10 @@ class UVProjector:
             buf = self._rgba.get(slot)
             if slot >= 0 and (buf is None or buf.dtype != img.dtype or img.size > buf.size):
                 self._rgba[slot] = img  # refilled next frame (the kernels are done with it by then)
-            if key not in self._r2:
-                self._r2[key] = _fov_r2_limit(cam)
             return _ViewCtx(cam, img, None, np.asarray(cam.center, dtype=np.float64), self._r2[key], region)
         fg = erode_mask(m, (cam.height, cam.width), self.config.erode_px, self.config.mask_threshold)
         if not fg.any():
             return None
-        if key not in self._r2:
-            self._r2[key] = _fov_r2_limit(cam)
         img = np.ascontiguousarray(image[..., :3], dtype=np.uint8 if image.dtype == np.uint8 else np.float32).reshape(-1, 3)
         return _ViewCtx(cam, img, fg.ravel(), np.asarray(cam.center, dtype=np.float64), self._r2[key])
 
@@ -488,8 +492,7 @@ class UVProjector:
             if ctx is None or N == 0:  # all-background mask: no samples from this view
                 continue
             cam = ctx.cam
-            key = (cam.name, tuple(np.asarray(cam.dist, dtype=np.float64).tolist()), cam.width, cam.height,
-                   tuple(cam.K.ravel().tolist()))
+            key = _camera_key(cam)
             if key not in self._grids:
                 self._grids[key] = zb.pinhole_grid(cam, ctx.r2max)
             grid = self._grids[key]

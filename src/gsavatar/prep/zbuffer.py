@@ -145,23 +145,21 @@ def _quad_erode(fg: np.ndarray, erode_px: int) -> np.ndarray:
                      borderType=cv2.BORDER_CONSTANT, borderValue=1).view(bool)
 
 
-def foreground_box(mask: np.ndarray | None, shape: tuple[int, int], erode_px: int,
-                   threshold: float = 0.5) -> tuple[int, int, int, int] | None:
-    """The image region the sampling kernels need: the bounding box of ``mask > threshold`` widened by
-    ``max(erode_px, 1) + 1`` pixels, clipped to the image, as (x0, y0, width, height); the whole image
-    without a mask; None when nothing is foreground.
+def foreground_box(fg: np.ndarray | None, shape: tuple[int, int], erode_px: int) -> tuple[int, int, int, int] | None:
+    """The image region the sampling kernels need: the bounding box of the thresholded mask fg [H, W] bool
+    widened by ``max(erode_px, 1) + 1`` pixels, clipped to the image, as (x0, y0, width, height); the whole
+    image without a mask (None); None when nothing is foreground.
 
     Exact: every pixel whose :func:`quad_foreground` flag is set lies in the foreground's bounding box
     (the (e+1)^2 window contains the pixel itself), and within that box the flag only reads pixels up to
     ``e`` away, so :func:`quad_foreground` of the region equals that of the whole image there (tested).
     """
     H, W = shape
-    if mask is None:
+    if fg is None:
         return 0, 0, W, H
     import cv2
 
-    fg = np.asarray(mask) > threshold
-    x, y, w, h = cv2.boundingRect(fg.view(np.uint8))
+    x, y, w, h = cv2.boundingRect(np.ascontiguousarray(fg).view(np.uint8))
     if w == 0 or h == 0:
         return None
     m = (erode_px if erode_px > 1 else 1) + 1
@@ -202,17 +200,18 @@ def region_rgba(image: np.ndarray, mask: np.ndarray | None, erode_px: int, thres
     -> (rgba [w*h, 4], (x0, y0, w, h)), or None when the mask has no foreground. The kernels treat every
     pixel outside the region as background (its flag is 0 in the whole-image computation)."""
     H, W = image.shape[:2]
-    box = foreground_box(mask, (H, W), erode_px, threshold)
+    fg = None if mask is None else np.asarray(mask) > threshold
+    box = foreground_box(fg, (H, W), erode_px)
     if box is None:
         return None
     x0, y0, w, h = box
-    if mask is None:
-        fg = np.ones((h, w), bool)
+    if fg is None:
+        quad = np.ones((h, w), bool)
     else:
-        fg = _quad_erode(np.asarray(mask)[y0:y0 + h, x0:x0 + w] > threshold, erode_px)
+        quad = _quad_erode(fg[y0:y0 + h, x0:x0 + w], erode_px)
         # the region's own border counts as foreground in the erosion; where it is the image's border that is
         # the whole-image rule, and elsewhere the margin keeps it more than e pixels from any foreground
-    return image_with_foreground(image[y0:y0 + h, x0:x0 + w], fg, out), box
+    return image_with_foreground(image[y0:y0 + h, x0:x0 + w], quad, out), box
 
 
 # --------------------------------------------------------------------------- rasterizer
@@ -431,12 +430,15 @@ def _project_block(P, Nrm, s0, n, cp, min_cos, Hc, Wc, I00, FX, FY, RAY, TI):
 
 
 @numba.njit(cache=False, error_model="numpy", nogil=True, inline="always")
-def _sample_block(s0, n, own_tri, faces, img, dx, dy, u8, use_vis, tid, planes, eps, I00, FX, FY, RAY, TI,
+def _sample_block(s0, n, own_tri, faces, cp, img, u8, use_vis, tid, planes, eps, I00, FX, FY, RAY, TI,
                   out, row0, stride, k):
     """Pass 2 of a block in one view: for each texel j that pass 1 kept, the mask flag (the RGBA buffer's
     alpha), the depth test against the triangle-id buffer (module docstring) and the bilinear colour,
     written to out[row0 + j * stride + k[j], 0:3] (float32); k[j] += 1 when seen with a finite colour.
-    dx, dy: the buffer offsets of the right and lower taps (0 on a one-pixel-wide / -high image)."""
+    cp: the view's packed camera (image size and buffer region: the offsets of the right and lower taps, 0 on
+    a one-pixel-wide / -high image)."""
+    dx = 1 if int(cp[27]) > 1 else 0
+    dy = int(cp[41]) if int(cp[28]) > 1 else 0
     tflat = tid.ravel()
     one = np.float32(1.0)
     for j in range(n):
@@ -497,8 +499,6 @@ def sample_view(P, Nrm, own_tri, faces, cp, img, u8, use_vis, tri_id, planes, ep
     N = P.shape[1]
     block = 1024
     Hc, Wc = tri_id.shape
-    dx = 1 if int(cp[27]) > 1 else 0
-    dy = int(cp[41]) if int(cp[28]) > 1 else 0
     for b in numba.prange((N + block - 1) // block):
         s0 = b * block
         n = min(N, s0 + block) - s0
@@ -509,7 +509,7 @@ def sample_view(P, Nrm, own_tri, faces, cp, img, u8, use_vis, tri_id, planes, ep
         RAY = np.empty((n, 4))
         k = np.zeros(n, np.int64)
         _project_block(P, Nrm, s0, n, cp, min_cos, Hc, Wc, I00, FX, FY, RAY, TI)
-        _sample_block(s0, n, own_tri, faces, img, dx, dy, u8, use_vis, tri_id, planes, eps, I00, FX, FY, RAY, TI,
+        _sample_block(s0, n, own_tri, faces, cp, img, u8, use_vis, tri_id, planes, eps, I00, FX, FY, RAY, TI,
                       rgb, s0, 1, k)
         for j in range(n):
             ok[s0 + j] = k[j] > 0
@@ -703,10 +703,8 @@ def project_frame(P, Nrm, own_tri, faces, cams, imgs, u8, use_vis, tri_ids, plan
                     continue
                 tid = tri_ids[c]
                 Hc, Wc = tid.shape
-                dx = 1 if int(cp[27]) > 1 else 0
-                dy = int(cp[41]) if int(cp[28]) > 1 else 0
                 _project_block(P, Nrm, s0, n, cp, min_cos, Hc, Wc, I00, FX, FY, RAY, TI)
-                _sample_block(s0, n, own_tri, faces, imgs[c], dx, dy, u8, use_vis, tid, planes[c], eps, I00, FX, FY,
+                _sample_block(s0, n, own_tri, faces, cp, imgs[c], u8, use_vis, tid, planes[c], eps, I00, FX, FY,
                               RAY, TI, smp, 0, C, k)
             for j in range(n):
                 _fuse_one(smp, j * C, k[j], median_band, lo, hi, L, idx, keep, col, count, seen, out_index[s0 + j])
