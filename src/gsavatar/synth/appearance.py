@@ -6,6 +6,10 @@ The synthetic captures reproduce the two problems the paper is about:
   wrinkle/fold patterns (a Markov chain over frames, mean dwell ``fold_dwell_s``)
   and the hair/upper-back colours drift slowly. Both evolve with time, not with
   pose, so the same pose shows different appearances at different times.
+- **Appearance caused by the motion's history** (``motion_effects``, on in the ``small`` preset):
+  springs, hysteresis and accumulators driven by the posed joints
+  (:mod:`gsavatar.synth.motion_effects`); the same pose looks different depending on how the body
+  got there, and a predictor that sees the pose history can learn it.
 - **Spurious correlation.** In *training* frames only, the trouser fold state is a
   function of one distant pose parameter (e.g. the right wrist rotation crossing a
   threshold). In test frames it follows its own pose-independent chain. A model
@@ -31,6 +35,7 @@ import numpy as np
 
 from gsavatar.data_schema.rig import Rig
 from gsavatar.data_schema.template import Template
+from gsavatar.synth.motion_effects import MotionEffect, apply_effect, effect_level, joint_signal
 
 
 @dataclass(frozen=True)
@@ -72,6 +77,9 @@ class AppearanceConfig:
     """Tie the trouser fold state to the coupling pose signal in train frames (spurious correlation)."""
     coupling_hysteresis: float = 0.05
     """Half-width of the threshold's hysteresis band, in standard deviations of the signal."""
+    motion_effects: tuple[MotionEffect, ...] = ()
+    """Appearance mechanisms whose state is a causal function of the motion's history (springs, hysteresis,
+    accumulators; :mod:`gsavatar.synth.motion_effects`). Need the posed joints (``joint_positions``)."""
 
 
 class UVRaster(NamedTuple):
@@ -236,11 +244,14 @@ class AppearanceModel:
         In train frames the trouser fold state is ``hi`` when it is above the train-frame
         median (with hysteresis), else ``lo``. None disables the coupling.
     rig: used only to find head/hand/forearm/foot vertices by joint name.
+    joint_positions: posed world joint positions over the sequence, metres, +Y up.  # [F, J, 3]
+        Needed when ``config.motion_effects`` is not empty; ``joint_names`` [J] names them.
     """
 
     def __init__(self, template: Template, num_frames: int, *, train_frames: Sequence[int] | None = None,
                  coupling_signal: np.ndarray | None = None, rig: Rig | None = None, seed: int = 0,
-                 tex_size: int = 512, fps: float = 30.0, config: AppearanceConfig | None = None) -> None:
+                 tex_size: int = 512, fps: float = 30.0, config: AppearanceConfig | None = None,
+                 joint_positions: np.ndarray | None = None, joint_names: Sequence[str] = ()) -> None:
         if num_frames <= 0:
             raise ValueError(f"num_frames must be positive, got {num_frames}")
         if tex_size < 16:
@@ -285,6 +296,37 @@ class AppearanceModel:
             self._dye_w = self.regions[cfg.dye_garment].ravel()[self._dye_idx][:, None].astype(np.float32)
         self._trou_idx = np.flatnonzero(self.regions["trousers"].ravel() > 1e-3)
         self._trou_w = self.regions["trousers"].ravel()[self._trou_idx][:, None].astype(np.float32)
+        self._build_motion_effects(joint_positions, joint_names)
+
+    def _build_motion_effects(self, joint_positions: np.ndarray | None, joint_names: Sequence[str]) -> None:
+        """Signals, states and texel sets of ``config.motion_effects`` (all frames, once)."""
+        effects = tuple(self.config.motion_effects)
+        self.motion_signals: dict[str, np.ndarray] = {}  # name -> [F]
+        self.motion_levels: dict[str, np.ndarray] = {}  # name -> [F]
+        self.motion_constants: dict[str, dict] = {}
+        self._motion_texels: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        if not effects:
+            return
+        if joint_positions is None or np.shape(joint_positions)[:1] != (self.num_frames,):
+            raise ValueError(f"config.motion_effects need joint_positions [num_frames={self.num_frames}, J, 3], got "
+                             f"{None if joint_positions is None else tuple(np.shape(joint_positions))}")
+        if len({e.name for e in effects}) != len(effects):
+            raise ValueError(f"motion effect names must be unique, got {[e.name for e in effects]}")
+        H = self.body_height
+        y_all = ((self.uv.position[..., 1] - self._ymin()) / H).ravel()
+        for e in effects:
+            e.check()
+            if e.region not in self.regions:
+                raise ValueError(f"motion effect {e.name!r}: region must be one of {sorted(self.regions)}, got "
+                                 f"{e.region!r}")
+            u = joint_signal(np.asarray(joint_positions), joint_names, e, self.fps)
+            level, const = effect_level(e, u, self.fps)
+            self.motion_signals[e.name], self.motion_levels[e.name], self.motion_constants[e.name] = u, level, const
+            reach = abs(e.strength) / H + 0.5 * (e.y_range[1] - e.y_range[0]) if e.effect == "band" else 0.0
+            lo, hi = e.y_range[0] - reach, e.y_range[1] + reach
+            w = self.regions[e.region].ravel() * ((y_all >= lo) & (y_all <= hi))
+            idx = np.flatnonzero(w > 1e-3)
+            self._motion_texels.append((idx, w[idx][:, None].astype(np.float32), y_all[idx].astype(np.float32)))
 
     # ------------------------------------------------------------------ static maps
     def _build_regions(self, template: Template, rig: Rig | None) -> None:
@@ -475,6 +517,8 @@ class AppearanceModel:
             out["trouser_tint"] = float(self.trouser_tint[f])
         if self.config.dye_garment != "none":
             out["dye"] = int(self.dye[f])
+        if self.motion_levels:
+            out["motion"] = {k: float(v[f]) for k, v in self.motion_levels.items()}
         return out
 
     def texture(self, frame: int) -> np.ndarray:
@@ -505,6 +549,8 @@ class AppearanceModel:
         if len(self._face_idx):
             delta = (self.face_embedding[f][:, None] * self._face_blobs).T @ self._face_tints  # [N, 3]
             flat[self._face_idx] += cfg.face_strength * delta
+        for e, (idx, w, y) in zip(cfg.motion_effects, self._motion_texels):
+            apply_effect(flat, idx, w, y, e, float(self.motion_levels[e.name][f]), self.body_height)
         return np.clip(tex, 0.0, 1.0).astype(np.float32, copy=False)
 
     def states(self) -> list[dict]:

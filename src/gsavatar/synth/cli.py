@@ -15,6 +15,7 @@ from gsavatar.data_schema import load_capture
 from gsavatar.synth.body import default_anny_cache
 from gsavatar.synth.make import make_capture
 from gsavatar.synth.presets import preset
+from gsavatar.utils.jsonio import read_json
 from gsavatar.utils.outdir import claim_output_dir
 
 
@@ -24,10 +25,11 @@ class Synth:
 
     out: Path
     """Output capture directory."""
-    preset: Literal["tiny", "small", "hard"] = "tiny"
-    """Size/difficulty preset (tiny: tests, small: demo, hard: stability cases)."""
-    seed: int = 0
-    """Random seed (same seed -> identical capture)."""
+    preset: Literal["tiny", "small", "small_random", "second", "hard"] = "tiny"
+    """Size/difficulty preset (tiny: tests, small: demo, small_random: appearance random in time, second: another
+    body/motion/mechanisms, hard: stability cases)."""
+    seed: int | None = None
+    """Random seed (same seed -> identical capture); None: the preset's."""
     anny_cache: Path | None = None
     """Cache of the anny body build (default: $ANNY_CACHE_DIR or ~/.cache/gsavatar/anny)."""
     overwrite: bool = False
@@ -37,7 +39,7 @@ class Synth:
     overwritten)."""
 
     def run(self) -> None:
-        cfg = preset(self.preset, seed=self.seed)
+        cfg = preset(self.preset) if self.seed is None else preset(self.preset, seed=self.seed)
         if (Path(self.out) / "capture.json").exists() and not self.overwrite:
             load_capture(self.out)  # validates; an existing complete capture is reused, not rebuilt
             print(f"{self.out} already holds a valid capture; reusing it (--overwrite to rebuild)")
@@ -45,3 +47,9 @@ class Synth:
         claim_output_dir(Path(self.out), "capture", self.force_out, "--force-out")  # not registered: it fills the anny cache too
         make_capture(cfg, Path(self.out), self.anny_cache or default_anny_cache(), overwrite=self.overwrite)
         print(f"capture written to {self.out}")
+        fair = Path(self.out) / "gt" / "fairness.json"
+        if fair.exists():
+            d = read_json(fair)
+            print(f"history-caused appearance ({', '.join(e.name for e in cfg.appearance.motion_effects)}): R^2 on test "
+                  f"frames from the current pose {d['pose_only']:.2f}, from the last {d['history_frames']} poses "
+                  f"{d['history']:.2f} ({fair})")

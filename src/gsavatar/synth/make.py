@@ -14,6 +14,8 @@
       gt/regions.npz                 UV maps of the garment/skin/hair/face regions (uint8)
       gt/texel_views.npz             views seeing each texel at frame 0 (uint8 [S, S])
       gt/config.json                 the SynthConfig
+      gt/motion_states.npz           history-caused appearance states [F, E] and their signals (if any)
+      gt/fairness.json               how well pose alone / the pose history predict those states
 
 The body is the Anny model (:mod:`gsavatar.synth.body`), the motion a CMU BVH clip
 retargeted onto it (:mod:`gsavatar.motion.retarget`), the appearance
@@ -41,6 +43,7 @@ from gsavatar.data_schema.rig import Rig
 from gsavatar.data_schema.template import save_template
 from gsavatar.synth.appearance import AppearanceModel
 from gsavatar.synth.cameras import camera_kind, make_dome, special_cameras
+from gsavatar.synth.fairness import history_fairness
 from gsavatar.synth.presets import SynthConfig
 from gsavatar.synth.render import (FrameScene, Shading, TriMesh, box_mesh, pose_vertices, render_view,
                                    supersampled_rays, texel_visibility)
@@ -231,8 +234,18 @@ def make_capture(cfg: SynthConfig, out_dir: str | Path, anny_cache_dir: str | Pa
     splits = default_splits(cfg, cameras)
     train = np.asarray(splits["train"].frames)
     slot, pname = coupling_slot(rig, motion.pose, train, cfg.coupled_param)
+    joints = None
+    if cfg.appearance.motion_effects:
+        import torch
+
+        from gsavatar.geometry.lbs import pose_joints
+
+        with torch.no_grad():
+            joints = pose_joints(rig, *(torch.as_tensor(np.asarray(a), dtype=torch.float64) for a in
+                                       (motion.pose, motion.root_rotation, motion.root_translation))).numpy()
     app = AppearanceModel(template, F, train_frames=train, coupling_signal=motion.pose[:, slot], rig=rig,
-                          seed=cfg.seed, tex_size=cfg.tex_size, fps=cfg.fps, config=cfg.appearance)
+                          seed=cfg.seed, tex_size=cfg.tex_size, fps=cfg.fps, config=cfg.appearance,
+                          joint_positions=joints, joint_names=[j.name for j in rig.joints])
     motion = Motion(motion.pose, motion.root_rotation, motion.root_translation, app.face_embedding)
     rng = np.random.default_rng([cfg.seed, 31])
     corrupted: list[int] = []
@@ -248,6 +261,15 @@ def make_capture(cfg: SynthConfig, out_dir: str | Path, anny_cache_dir: str | Pa
     atomic_write_json(gt / "config.json", cfg.to_json())
     atomic_save_npz(gt / "regions.npz", covered=app.uv.covered.astype(np.uint8) * 255,
                     **{k: np.rint(np.clip(v, 0, 1) * 255).astype(np.uint8) for k, v in app.regions.items()})
+
+    fairness = None
+    if app.motion_levels:
+        names = list(app.motion_levels)
+        levels = np.stack([app.motion_levels[k] for k in names], 1).astype(np.float32)  # [F, E]
+        signals = np.stack([app.motion_signals[k] for k in names], 1).astype(np.float32)
+        atomic_save_npz(gt / "motion_states.npz", names=np.array(names), levels=levels, signals=signals)
+        fairness = history_fairness(motion, levels, train, np.asarray(splits["test"].frames), joints=joints)
+        atomic_write_json(gt / "fairness.json", fairness)
 
     job = _RenderJob(out, template.faces, template.corner_uvs, verts, cameras, app, cfg.supersample,
                      Shading() if cfg.shading else None, tuple(cfg.background), occluders, cfg.corrupted_camera,
@@ -274,6 +296,7 @@ def make_capture(cfg: SynthConfig, out_dir: str | Path, anny_cache_dir: str | Pa
         "dome": {"center_xz": [float(x) for x in center], "reach": reach, "y_range": list(y_range),
                  "body_height": body_height},
         "mean_color_frame0": results[0]["mean_color"],
+        "motion_effects": {k: {"constants": app.motion_constants[k]} for k in app.motion_levels},
         "frames": app.states(),
     })
     write_capture_metadata(out, cfg.fps, F, cameras, splits)

@@ -5,9 +5,12 @@ Presets:
 - ``tiny``: decimated body (~3k vertices), 6 cameras of 128x128, 12 frames, 256^2
   texture. For unit tests: builds in seconds once the Anny cache exists.
 - ``small``: the demo capture: full body (~13.5k vertices), 12 cameras of 256x256,
-  120 frames at 30 fps (4 s, incl. a turn-around), 512^2 texture, and a shirt that switches between
-  three dyes (pose-independent, ~1 s dwell) on top of the folds and drifts: an appearance change
-  large enough for the latent path to matter (docs/train.md). A few minutes on 2 cores.
+  450 frames at 30 fps (15 s; the last 90 are the test segment), 512^2 texture, and appearance
+  that the motion's history causes (:data:`SMALL_MOTION_EFFECTS`: an accumulator, a hysteresis
+  and a spring) on top of weak pose-independent folds and drifts. A few minutes on 2 cores.
+- ``small_random``: the previous demo capture (120 frames, a shirt that switches between three
+  dyes independently of the motion): what re-initialising the predictor is for.
+- ``second``: another body, seed and CMU motion (01_03) with other mechanisms' parameters.
 - ``hard``: stability stressors for texture projection/fusion: a sparse dome (texels
   seen by a single view), grazing top-down and floor-level cameras, a camera pointed
   away (sees nothing), a box occluding part of the body in one view only, and one
@@ -23,9 +26,10 @@ from typing import Literal
 
 from gsavatar.synth.appearance import AppearanceConfig
 from gsavatar.synth.cameras import SpecialKind
+from gsavatar.synth.motion_effects import MotionEffect
 from gsavatar.utils.jsonio import config_to_json
 
-PresetName = Literal["tiny", "small", "hard"]
+PresetName = Literal["tiny", "small", "small_random", "second", "hard"]
 DEFAULT_BVH = "/usr/share/assimp/models/BVH/01_01.bvh"
 
 
@@ -105,20 +109,54 @@ class SynthConfig:
             raise ValueError(f"unknown SynthConfig fields {sorted(unknown)}")
         kw = dict(d)
         if "appearance" in kw:
-            kw["appearance"] = AppearanceConfig(**kw["appearance"])
+            app = dict(kw["appearance"])
+            if "motion_effects" in app:
+                app["motion_effects"] = tuple(
+                    MotionEffect(**{k: tuple(v) if isinstance(v, list) else v for k, v in e.items()})
+                    for e in app["motion_effects"])
+            kw["appearance"] = AppearanceConfig(**app)
         for k in ("background", "special_cameras"):
             if k in kw:
                 kw[k] = tuple(kw[k])
         return cls(**kw)
 
 
+_LIMBS = ("left_hand", "right_hand", "left_foot", "right_foot")
+SMALL_MOTION_EFFECTS = (
+    # Sustained limb effort darkens the upper shirt (sweat) and fades within about a second.
+    MotionEffect("sweat", "accumulator", "speed", _LIMBS, "shirt", "darken", strength=0.5, y_range=(0.66, 0.86),
+                 time_constant_s=0.6, reference_quantile=0.7),
+    # The trousers' dye flips when the right hand rises high and stays until it drops low (a pushed-up sleeve).
+    MotionEffect("sleeve", "hysteresis", "height", ("right_hand",), "trousers", "dye", color=(1.5, 0.8, 0.55),
+                 low_quantile=0.25, high_quantile=0.75),
+    # The shirt's hem swings after the pelvis moves up or down: a damped spring on its vertical acceleration.
+    MotionEffect("hem", "spring", "vertical_acceleration", ("pelvis",), "shirt", "tint", strength=1.2,
+                 relative_to=None, y_range=(0.56, 0.66), frequency_hz=1.5, damping=0.3),
+)
+"""The ``small`` capture's history-caused appearance (docs/synth.md)."""
+SECOND_MOTION_EFFECTS = (
+    MotionEffect("flush", "accumulator", "speed", _LIMBS, "shirt", "dye", color=(1.35, 0.8, 0.7),
+                 time_constant_s=0.5, reference_quantile=0.6),
+    MotionEffect("cuff", "hysteresis", "vertical_velocity", ("pelvis",), "trousers", "dye", color=(0.7, 0.9, 1.5),
+                 relative_to=None, low_quantile=0.1, high_quantile=0.9),
+    MotionEffect("swing", "spring", "vertical_acceleration", ("pelvis",), "shirt", "band", strength=0.05,
+                 color=(0.95, 0.92, 0.85), relative_to=None, y_range=(0.57, 0.65), frequency_hz=1.5, damping=0.4),
+)
+"""The ``second`` capture's: other mechanisms' parameters, regions and effects, another motion and body."""
+_QUIET = dict(fold_strength=0.12, hair_hue_range=0.3)  # pose-independent changes kept, but small
+
 PRESETS: dict[str, SynthConfig] = {
     "tiny": SynthConfig(
         preset="tiny", decimate_to=3000, num_cams=6, width=128, height=128, num_frames=12, fps=15.0,
         bvh_start=1040, tex_size=256, test_fraction=0.25, test_cameras=1,
         appearance=AppearanceConfig(fold_dwell_s=0.25, drift_period_s=2.0, face_period_s=0.8)),
-    "small": SynthConfig(preset="small", tex_size=512, test_cameras=2,
-                         appearance=AppearanceConfig(dye_garment="shirt", dye_states=3, dye_dwell_s=1.0)),
+    "small": SynthConfig(preset="small", tex_size=512, test_cameras=2, num_frames=450, bvh_start=120,
+                         appearance=AppearanceConfig(motion_effects=SMALL_MOTION_EFFECTS, **_QUIET)),
+    "small_random": SynthConfig(preset="small_random", tex_size=512, test_cameras=2,
+                                appearance=AppearanceConfig(dye_garment="shirt", dye_states=3, dye_dwell_s=1.0)),
+    "second": SynthConfig(preset="second", seed=1, body_seed=3, tex_size=512, test_cameras=2, num_frames=450,
+                          bvh_path="/usr/share/assimp/models/BVH/01_03.bvh", bvh_start=1500,
+                          appearance=AppearanceConfig(motion_effects=SECOND_MOTION_EFFECTS, **_QUIET)),
     "hard": SynthConfig(
         preset="hard", decimate_to=6000, num_cams=9, width=192, height=192, num_frames=24, fps=15.0,
         bvh_start=1000, tex_size=512, test_cameras=1, special_cameras=("top", "floor", "away"),
@@ -129,7 +167,10 @@ PRESETS: dict[str, SynthConfig] = {
 
 PRESET_HELP: dict[str, str] = {
     "tiny": "unit-test capture: ~3k-vertex body, 6 cameras 128x128, 12 frames, 256^2 texture (seconds)",
-    "small": "demo capture: full body, 12 cameras 256x256, 120 frames at 30 fps, 512^2 texture (minutes)",
+    "small": "demo capture: full body, 12 cameras 256x256, 450 frames at 30 fps (90 test), 512^2 texture, appearance "
+             "caused by the motion's history (minutes)",
+    "small_random": "the previous demo capture: 120 frames, appearance random in time (shirt dye switches)",
+    "second": "a second capture: another body, CMU 01_03, other history-caused mechanisms (minutes)",
     "hard": "stress capture: sparse dome + grazing/away cameras, one occluded and one corrupted view",
 }
 

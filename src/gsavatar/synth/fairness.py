@@ -1,0 +1,193 @@
+"""Fairness check of a capture: can its appearance states be predicted from the pose, or from the pose history?
+
+One simple regressor (ridge regression on PCA-reduced pose features, its regularisation chosen by
+cross-validation over contiguous blocks of the training frames) is fit twice on the training frames:
+
+- ``pose_only``: features of the current frame ``t`` alone;
+- ``history``: the same features of frames ``t-N+1..t`` stacked (clamped at the sequence start).
+
+Predictions are clipped to the training range of each state. Both are scored on the test frames by R^2 pooled over the (standardised) states:
+``1 - sum SSE / sum SST``, SST around the test frames' own mean. A capture whose appearance the motion
+history causes has ``history`` clearly above ``pose_only``; one whose appearance is random in time has
+both near or below 0. Per frame the features are the joint-local pose parameters and the root height
+(heading and position in the room carry no appearance).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+HISTORY = 10
+"""Poses in the history window of the ``history`` regressor (the paper's N_b)."""
+ALPHAS = tuple(10.0 ** k for k in range(-3, 5))
+
+
+def pose_features(pose: np.ndarray, root_translation: np.ndarray, joints: np.ndarray | None = None) -> np.ndarray:
+    """Per-frame regressor inputs: pose parameters, the joints' positions relative to the first joint (the root)
+    in its heading frame (yaw about +Y removed) when given, and last the root height (kept out of the PCA).
+
+    pose [F, P], root_translation [F, 3], joints [F, J, 3] world -> [F, P (+ 3 J) + 1]
+    """
+    parts = [np.asarray(pose, np.float64)]
+    if joints is not None:
+        j = np.asarray(joints, np.float64)
+        rel = j - j[:, :1]
+        fwd = rel[:, min(1, j.shape[1] - 1)]  # root -> its first child (a hip): the heading
+        yaw = np.arctan2(fwd[:, 0], fwd[:, 2])
+        c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+        x, z = rel[..., 0], rel[..., 2]
+        parts.append(np.stack([c * x - s * z, rel[..., 1], s * x + c * z], -1).reshape(len(j), -1))
+    parts.append(np.asarray(root_translation, np.float64)[:, 1:2])
+    return np.concatenate(parts, 1)
+
+
+def stack_history(x: np.ndarray, history: int) -> np.ndarray:
+    """Frames ``t-history+1..t`` of every row, oldest first, clamped at row 0. [F, D] -> [F, history * D]"""
+    idx = np.maximum(np.arange(len(x))[:, None] - np.arange(history - 1, -1, -1)[None], 0)
+    return x[idx].reshape(len(x), -1)
+
+
+def _ridge_fit(X: np.ndarray, Y: np.ndarray, alpha: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    mu, sd = X.mean(0), X.std(0)
+    sd = np.where(sd > 1e-9, sd, 1.0)
+    Z = (X - mu) / sd
+    ym = Y.mean(0)
+    W = np.linalg.solve(Z.T @ Z + alpha * np.eye(Z.shape[1]), Z.T @ (Y - ym))
+    return mu, sd, W, ym
+
+
+def _ridge_predict(model, X: np.ndarray) -> np.ndarray:
+    mu, sd, W, ym = model
+    return ((X - mu) / sd) @ W + ym
+
+
+def pooled_r2(pred: np.ndarray, target: np.ndarray) -> float:
+    """``1 - sum SSE / sum SST`` over all columns (SST around each column's mean). [n, E] x2 -> float"""
+    sst = float(((target - target.mean(0)) ** 2).sum())
+    sse = float(((pred - target) ** 2).sum())
+    return 1.0 - sse / sst if sst > 1e-12 else float("nan")
+
+
+def ridge_cv(X: np.ndarray, Y: np.ndarray, folds: int = 5) -> float:
+    """Ridge regularisation with the lowest squared error over ``folds`` contiguous blocks of rows."""
+    n = len(X)
+    edges = np.linspace(0, n, min(folds, n) + 1).astype(int)
+    best, best_err = ALPHAS[0], np.inf
+    for a in ALPHAS:
+        err = 0.0
+        for k in range(len(edges) - 1):
+            va = np.zeros(n, bool)
+            va[edges[k]:edges[k + 1]] = True
+            if va.all() or not va.any():
+                continue
+            m = _ridge_fit(X[~va], Y[~va], a)
+            err += float(((_ridge_predict(m, X[va]) - Y[va]) ** 2).sum())
+        if err < best_err:
+            best, best_err = a, err
+    return best
+
+
+def predictability(features: np.ndarray, states: np.ndarray, train: np.ndarray, test: np.ndarray,
+                   history: int = HISTORY, components: int = 12, raw_columns: int = 0) -> dict:
+    """R^2 on ``test`` rows of the pose-only and the history regressor fit on ``train`` rows.
+
+    features [F, D] per-frame inputs (the last ``raw_columns`` are kept as they are, the others reduced to
+    ``components`` PCA components), states [F, E] targets, train/test frame indices.
+    -> {"pose_only", "history", "per_state": {"pose_only": [E], "history": [E]}, ...}
+    """
+    x = np.asarray(features, np.float64)
+    y = np.asarray(states, np.float64).reshape(len(x), -1)
+    train, test = np.asarray(train, np.int64), np.asarray(test, np.int64)
+    if len(train) < 4 or len(test) < 2:
+        raise ValueError(f"need >= 4 train and >= 2 test frames, got {len(train)} and {len(test)}")
+    # PCA of the per-frame features on the training frames keeps the stacked regressor small.
+    mu, sd = x[train].mean(0), x[train].std(0)
+    sd = np.where(sd > 1e-9, sd, 1.0)
+    z = (x - mu) / sd
+    keep = x.shape[1] - raw_columns
+    _, _, vt = np.linalg.svd(z[train][:, :keep], full_matrices=False)
+    z = np.concatenate([z[:, :keep] @ vt[: min(components, vt.shape[0])].T, z[:, keep:]], 1)
+    ym, ys = y[train].mean(0), y[train].std(0)
+    y = (y - ym) / np.where(ys > 1e-9, ys, 1.0)
+    out: dict = {"per_state": {}}
+    for name, X in (("pose_only", z), ("history", stack_history(z, history))):
+        pred = np.empty((len(test), y.shape[1]))
+        alphas = []
+        for e in range(y.shape[1]):  # each state its own regularisation
+            alphas.append(ridge_cv(X[train], y[train][:, [e]]))
+            fit = _ridge_fit(X[train], y[train][:, [e]], alphas[-1])
+            # Clipped to the training range: a state never leaves it, and novel test poses must not extrapolate.
+            pred[:, e] = np.clip(_ridge_predict(fit, X[test])[:, 0], y[train][:, e].min(), y[train][:, e].max())
+        out[name] = pooled_r2(pred, y[test])
+        out["per_state"][name] = [pooled_r2(pred[:, [e]], y[test][:, [e]]) for e in range(y.shape[1])]
+        out[f"{name}_alpha"] = alphas
+    out.update({"metric": "R^2 on test frames, pooled over standardised states", "history_frames": history,
+                "regressor": f"ridge on {z.shape[1] - raw_columns} pose PCA components (+ {raw_columns} raw), alpha "
+                              "per state by 5-fold contiguous CV, clipped to the training range"})
+    return out
+
+
+def history_fairness(motion, states: np.ndarray, train: np.ndarray, test: np.ndarray, history: int = HISTORY,
+                     joints: np.ndarray | None = None) -> dict:
+    """:func:`predictability` of the appearance ``states`` [F, E] from a capture's ``motion`` and its posed
+    ``joints`` [F, J, 3] (JSON-ready)."""
+    res = predictability(pose_features(motion.pose, motion.root_translation, joints), states, train, test, history,
+                         raw_columns=1)
+
+    def clean(v):
+        if isinstance(v, dict):
+            return {k: clean(w) for k, w in v.items()}
+        if isinstance(v, list):
+            return [clean(w) for w in v]
+        return None if isinstance(v, float) and not np.isfinite(v) else v
+
+    return clean(res)
+
+
+def capture_fairness(capture) -> dict:
+    """:func:`history_fairness` of a written synthetic capture (``gt/motion_states.npz``, motion, rig, splits)."""
+    from pathlib import Path
+
+    import torch
+
+    from gsavatar.data_schema import load_capture
+    from gsavatar.geometry.lbs import pose_joints
+    from gsavatar.utils.io import read_npz
+
+    capture = Path(capture)
+    cap = load_capture(capture)
+    z = read_npz(capture / "gt" / "motion_states.npz", keys=("levels",))
+    m = cap.motion
+    with torch.no_grad():
+        joints = pose_joints(cap.rig, *(torch.as_tensor(np.asarray(a), dtype=torch.float64)
+                                        for a in (m.pose, m.root_rotation, m.root_translation))).numpy()
+    return history_fairness(m, z["levels"], np.asarray(cap.splits["train"].frames),
+                            np.asarray(cap.splits["test"].frames), joints=joints)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m gsavatar.synth.fairness CAPTURE [--write]``: print (and rewrite gt/fairness.json)."""
+    import argparse
+    import json
+    from pathlib import Path
+
+    from gsavatar.utils.cli import run_reporting_errors
+    from gsavatar.utils.io import atomic_write_json
+
+    ap = argparse.ArgumentParser(description="How well pose alone / the pose history predict a synthetic "
+                                 "capture's history-caused appearance states (R^2 on test frames).")
+    ap.add_argument("capture", type=Path)
+    ap.add_argument("--write", action="store_true", help="rewrite CAPTURE/gt/fairness.json")
+    a = ap.parse_args(argv)
+
+    def run() -> None:
+        res = capture_fairness(a.capture)
+        print(json.dumps({k: res[k] for k in ("pose_only", "history", "per_state")}))
+        if a.write:
+            atomic_write_json(a.capture / "gt" / "fairness.json", res)
+
+    return run_reporting_errors(run)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
