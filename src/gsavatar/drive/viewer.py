@@ -31,6 +31,10 @@ The viewer writes no files.
 from __future__ import annotations
 
 import dataclasses
+import errno
+import ipaddress
+import socket
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -68,6 +72,67 @@ class ViewerOptions:
             raise ValueError(f"speed must be > 0, got {self.speed}")
         if self.max_catch_up < 0:
             raise ValueError(f"max_catch_up must be >= 0, got {self.max_catch_up}")
+
+
+RESOLVE_TIMEOUT_S = 5.0
+"""How long resolving ``--host`` may take before the viewer gives up (a name no DNS answers must not hang)."""
+
+
+def _resolve(host: str, port: int, timeout: float) -> list[tuple]:
+    """``socket.getaddrinfo`` with a deadline (it has none of its own). -> [(family, sockaddr)]"""
+    box: dict = {}
+
+    def work() -> None:
+        try:
+            box["infos"] = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+        except OSError as e:  # socket.gaierror too
+            box["error"] = e
+
+    t = threading.Thread(target=work, daemon=True)
+    t.start()
+    t.join(timeout)
+    if t.is_alive():
+        raise ValueError(f"--host {host!r}: did not resolve within {timeout:.0f} s")
+    if "error" in box:
+        raise ValueError(f"--host {host!r}: cannot resolve ({box['error']})")
+    return [(fam, addr) for fam, _, _, _, addr in box["infos"]]
+
+
+def claim_address(host: str, port: int, timeout: float = RESOLVE_TIMEOUT_S, warn=print) -> int:
+    """Check that the viewer can serve exactly ``host:port``; returns the port (``port=0``: a free one, chosen here).
+
+    Raises ValueError naming the host or port when the host does not resolve (within ``timeout``) or cannot be
+    bound, or the port is in use: viser would otherwise move to the next free port silently, so a link to the
+    asked-for port would reach another server. ``warn`` gets one line when the address is not loopback (the
+    viewer has no authentication: anyone who can reach it sees and drives the avatar).
+    """
+    if not 0 <= port <= 65535:
+        raise ValueError(f"--port must be in [0, 65535], got {port}")
+    infos = _resolve(host, port, timeout)
+    if not infos:
+        raise ValueError(f"--host {host!r}: resolves to no address")
+    family, addr = infos[0]
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        if hasattr(socket, "SO_REUSEADDR"):  # a TIME_WAIT socket of an earlier viewer is not "in use"
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(addr)
+        chosen = int(sock.getsockname()[1])
+    except OSError as e:
+        if e.errno == errno.EADDRINUSE:
+            raise ValueError(f"--port {port}: already in use on {host} (another server holds it); choose another "
+                             f"port, or --port 0 for any free one") from None
+        raise ValueError(f"--host {host!r}: cannot bind {addr[0]}:{port} ({e.strerror or e})") from None
+    finally:
+        sock.close()
+    try:
+        loopback = ipaddress.ip_address(str(addr[0]).split("%")[0]).is_loopback
+    except ValueError:
+        loopback = False
+    if not loopback:
+        warn(f"warning: the viewer binds {host} ({addr[0]}), which is not loopback; it has no authentication, so "
+             f"anyone who can reach this address can watch and drive the avatar")
+    return chosen
 
 
 def rest_motion(driver: Driver) -> DrivingMotion:
@@ -346,7 +411,11 @@ class AvatarViewer:
         import viser
 
         opt = self.options
-        self.server = server = viser.ViserServer(host=opt.host, port=opt.port, verbose=False, label="gsavatar")
+        port = claim_address(opt.host, opt.port, warn=lambda m: print(m, file=sys.stderr, flush=True))
+        self.server = server = viser.ViserServer(host=opt.host, port=port, verbose=False, label="gsavatar")
+        if server.get_port() != port:  # taken between the check and viser's bind: never serve another port
+            server.stop()
+            raise ValueError(f"--port {port}: taken by another server while the viewer started; choose another port")
         server.gui.configure_theme(show_logo=False, dark_mode=False)
         g = self.generate(min(int(self._state.pos), self.motion.num_frames - 1))
         self.handle = server.scene.add_gaussian_splats("/avatar", centers=g.centers, covariances=g.covariances,
@@ -594,6 +663,7 @@ def main(argv: list[str] | None = None) -> int:
     opts = ViewerOptions(**{k: getattr(args, k) for k in ViewerOptions.__dataclass_fields__})
 
     def go() -> None:
+        claim_address(opts.host, opts.port, warn=lambda m: None)  # fail in seconds, before loading the run
         v = viewer_from_run(args.run, args.motion, config=DriveConfig(mode=args.mode, device=args.device),
                             options=opts)
         v.serve_forever()
@@ -608,6 +678,7 @@ if __name__ == "__main__":
 def serve_drive_args(args) -> None:
     """``avatar-drive --view``: the viewer of :class:`gsavatar.drive.cli.DriveArgs` until Ctrl-C."""
     opts = ViewerOptions(port=args.port, host=args.host, start_paused=args.start_paused, sh0_only=args.sh0_only)
+    claim_address(opts.host, opts.port, warn=lambda m: None)  # fail in seconds, before loading the run
     v = viewer_from_run(args.run, args.motion, config=args.config(), options=opts, motion_fps=args.motion_fps,
                         start=args.start, count=args.count, split=args.split)
     v.serve_forever()
