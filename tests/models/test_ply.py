@@ -43,9 +43,10 @@ def test_header_is_the_standard_layout(tmp_path):
     write_ply(path, **g)
     raw = path.read_bytes()
     head = raw[: raw.index(b"end_header\n")].decode().splitlines()
-    assert head[:3] == ["ply", "format binary_little_endian 1.0", "element vertex 3"]
-    assert [ln.split()[2] for ln in head[3:]] == STANDARD_DEG1
-    assert all(ln.split()[1] == "float" for ln in head[3:])
+    # a comment line marks the file as gsavatar's (single-file output rule, docs/reliability.md); readers skip it
+    assert head[:4] == ["ply", "format binary_little_endian 1.0", "comment gsavatar-output 3dgs", "element vertex 3"]
+    assert [ln.split()[2] for ln in head[4:]] == STANDARD_DEG1
+    assert all(ln.split()[1] == "float" for ln in head[4:])
     assert len(raw) == raw.index(b"end_header\n") + len(b"end_header\n") + 3 * len(STANDARD_DEG1) * 4
     # stored (raw) values: logit opacity, log scale, channel-major f_rest
     data = np.frombuffer(raw[raw.index(b"end_header\n") + 11 :], "<f4").reshape(3, -1)

@@ -26,6 +26,7 @@ from gsavatar.drive.metrics import load_ground_truth
 from gsavatar.drive.motion import load_driving_motion
 from gsavatar.metrics.image import psnr
 from gsavatar.utils.io import atomic_write_json, read_npz, write_image
+from gsavatar.utils.outdir import claim_output_file, record_output_file
 
 
 @dataclass
@@ -42,6 +43,8 @@ class CompareArgs:
     """Capture camera (empty: the first test camera)."""
     image_scale: float = 1.0
     """Image downscale factor."""
+    force: bool = False
+    """Replace an existing ``out`` (or its JSON) that is not a gsavatar figure (refused otherwise)."""
 
 
 def _panel(img: torch.Tensor, height: int, text: str, min_width: int = 220) -> np.ndarray:
@@ -61,6 +64,7 @@ def compare(args: CompareArgs) -> dict:
     from gsavatar.runs.latents import mean_train_latent
     from gsavatar.runs.load import load_run
 
+    claim_output_file(args.out, "figure", args.force, companions=(Path(args.out).with_suffix(".json"),))
     sources: dict[str, np.ndarray] = {}
     for spec in args.drive:
         label, sep, d = spec.partition("=")
@@ -128,6 +132,7 @@ def compare(args: CompareArgs) -> dict:
     info = {"run": str(args.run), "capture_frame": motion.gt.frames[t], "test_index": t, "camera": cam,
             "psnr_fg": scores, "figure": out.name}
     atomic_write_json(out.with_suffix(".json"), info)
+    record_output_file(out, "figure")
     print(f"latent sources at test frame {motion.gt.frames[t]} ({cam}): "
           + ", ".join(f"{k} {v:.2f} dB" for k, v in scores.items()) + f" -> {out}")
     return info

@@ -31,6 +31,7 @@ from torch import Tensor
 
 from gsavatar.render.sh import sh_bases
 from gsavatar.utils.io import atomic_path
+from gsavatar.utils.outdir import PLY_COMMENT
 
 UpAxis = Literal["z", "-y", "y"]
 UP_AXES: dict[str, np.ndarray] = {
@@ -153,7 +154,7 @@ def write_ply(
     ]
     data = np.concatenate(cols, axis=1).astype("<f4")
     names = ply_property_names(K)
-    header = "ply\nformat binary_little_endian 1.0\n" + f"element vertex {N}\n"
+    header = "ply\nformat binary_little_endian 1.0\n" + PLY_COMMENT + "\n" + f"element vertex {N}\n"
     header += "".join(f"property float {n}\n" for n in names) + "end_header\n"
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:

@@ -22,6 +22,7 @@ import tyro
 from gsavatar.runs.config import TrainConfig
 from gsavatar.train.predictor_cli import Predictor
 from gsavatar.utils.cli import run_reporting_errors
+from gsavatar.utils.outdir import claim_output_file, record_output_file
 
 
 @dataclass
@@ -73,6 +74,8 @@ class Export:
     up_axis: Literal["z", "-y", "y"] = "z"
     """Up axis of the file: ``z`` (ours, the capture's world) or ``-y`` (COLMAP / 3DGS viewers: SuperSplat,
     SIBR; positions, rotations and SH rotated together, docs/drive.md)."""
+    force: bool = False
+    """Replace an existing ``out`` that is not a gsavatar PLY (refused otherwise)."""
 
     def run_(self) -> None:
         from gsavatar.models.ply import export_frame_ply
@@ -81,6 +84,7 @@ class Export:
         from gsavatar.train.runs import posed_output
         from gsavatar.utils.paths import add_output_root
 
+        claim_output_file(self.out, "ply", self.force)
         add_output_root(Path(self.out).parent)  # the one file named, nothing beside it elsewhere
         net, scene, cfg, _ = load_run(self.run)
         if not 0 <= self.frame < scene.capture.num_frames:
@@ -134,13 +138,17 @@ class Turntable:
     """Frames of the orbit."""
     size: int = 256
     """Image size in pixels (square)."""
+    force: bool = False
+    """Replace an existing ``out`` that is not a gsavatar video (refused otherwise)."""
 
     def run_(self) -> None:
         from gsavatar.train.runs import render_turntable
         from gsavatar.utils.paths import add_output_root
 
+        claim_output_file(self.out, "video", self.force)
         add_output_root(Path(self.out).parent)
         print(f"wrote {render_turntable(self.run, self.out, self.frame, self.views, self.size)}")
+        record_output_file(self.out, "video")
 
 
 def main(argv: list[str] | None = None) -> int:

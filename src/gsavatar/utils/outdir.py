@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Literal
 
 from gsavatar.utils.errors import SchemaError
-from gsavatar.utils.io import atomic_write_json
+from gsavatar.utils.io import atomic_write_json, sha256_file
 from gsavatar.utils.jsonio import read_json
 from gsavatar.utils.paths import add_output_root
 
@@ -134,3 +134,85 @@ def claim_output_dir(path: str | Path, kind: OutputKind, force: bool = False, fo
     if not marker.exists():
         atomic_write_json(marker, {"format": MARKER_FORMAT, "kind": kind})
     return d
+
+
+# --------------------------------------------------------------------------- single-file outputs
+FileKind = Literal["ply", "video", "figure"]
+FILE_SUFFIXES: dict[str, tuple[str, ...]] = {"ply": (".ply",), "video": (".mp4",), "figure": (".png",)}
+"""The extensions each kind of single-file output may have (the writer picks the format from it)."""
+PLY_COMMENT = "comment gsavatar-output 3dgs"
+"""Header line of every PLY gsavatar writes: how an existing .ply is recognised as ours."""
+FILE_RECORD_FORMAT = "gsavatar-output-file"
+
+
+def file_record_path(path: str | Path) -> Path:
+    """The sidecar record of a single-file output (hidden, beside it): ``DIR/.NAME.gsavatar.json``."""
+    p = Path(path)
+    return p.with_name(f".{p.name}.gsavatar.json")
+
+
+def _ply_is_ours(path: Path) -> bool:
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    end = head.find(b"end_header")
+    return head.startswith(b"ply\n") and end > 0 and PLY_COMMENT.encode() in head[:end].split(b"\n")
+
+
+def is_our_file(path: str | Path, kind: FileKind) -> bool:
+    """Whether ``path`` is a single-file gsavatar output of ``kind`` that nobody has replaced since.
+
+    PLY: the header line :data:`PLY_COMMENT`. Other kinds: the sidecar record (:func:`record_output_file`) names
+    the kind and the file's current SHA-256, so a user's file saved over ours is not taken for ours.
+    """
+    p = Path(path)
+    if not p.is_file():
+        return False
+    if kind == "ply" and _ply_is_ours(p):
+        return True
+    rec = _json_dict(file_record_path(p)) or {}
+    if rec.get("format") != FILE_RECORD_FORMAT or rec.get("kind") != kind:
+        return False
+    return rec.get("sha256") == sha256_file(p)
+
+
+def claim_output_file(path: str | Path, kind: FileKind, force: bool = False, force_flag: str = "--force",
+                      companions: tuple[str | Path, ...] = ()) -> Path:
+    """Check that a command may write its single-file output ``path`` of ``kind``; returns it. Writes nothing.
+
+    The extension must fit the kind (:data:`FILE_SUFFIXES`). An existing path must be a regular file that is a
+    gsavatar output of this kind (:func:`is_our_file`: it is replaced, as a re-run would), or ``force`` must be
+    set. ``companions``: files written with it (a JSON of its numbers); an existing one is replaced only when
+    ``path`` is ours or ``force`` is set. Raises SchemaError(path, "", ...) naming the file and the flag;
+    IsADirectoryError for a folder.
+    The writer's temporary file lives beside the target (:func:`gsavatar.utils.io.atomic_path`).
+    """
+    p = Path(path)
+    if kind not in FILE_SUFFIXES:
+        raise ValueError(f"kind must be one of {sorted(FILE_SUFFIXES)}, got {kind!r}")
+    if p.suffix.lower() not in FILE_SUFFIXES[kind]:
+        raise SchemaError(p, "", f"a {kind} output must end in {' or '.join(FILE_SUFFIXES[kind])}, got "
+                                 f"{p.suffix or 'no extension'!r}")
+    if p.is_dir():
+        raise IsADirectoryError(f"{p}: is a directory; name the {kind} file to write")
+    if p.exists() or p.is_symlink():
+        if not p.is_file() or p.is_symlink():
+            raise SchemaError(p, "", "exists and is not a regular file (a link, FIFO or device); choose another name")
+        if not force and not is_our_file(p, kind):
+            raise SchemaError(p, "", f"exists and is not a gsavatar {kind} output; choose another name, or pass "
+                                     f"{force_flag} to replace it")
+    ours = is_our_file(p, kind)
+    for c in map(Path, companions):
+        if (c.exists() or c.is_symlink()) and not (force or ours) or (c.is_symlink() or c.is_dir()):
+            raise SchemaError(c, "", f"exists and was not written with {p.name} by gsavatar; choose another name for "
+                                     f"{p.name}, or pass {force_flag} to replace both")
+    return p
+
+
+def record_output_file(path: str | Path, kind: FileKind) -> None:
+    """Write the sidecar record of a finished single-file output (its kind and SHA-256), atomically."""
+    p = Path(path)
+    if kind != "ply":  # a PLY carries its mark in its header
+        atomic_write_json(file_record_path(p), {"format": FILE_RECORD_FORMAT, "kind": kind, "sha256": sha256_file(p)})
