@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -198,3 +200,43 @@ def test_untrained_residual_predictor_is_persistence():
     out = m.rollout(pose, rot, trans, init)
     held = m.clamp_latents(init[None])[0]  # the output clamp is idempotent: the first clamped latents persist
     torch.testing.assert_close(out, held.expand_as(out), atol=1e-5, rtol=1e-5)
+
+
+def test_no_history_ablation_sees_only_the_current_pose():
+    m = model(history=1, velocities=False)
+    assert m.feature_dim == 1
+    pose, rr, rt = seq(6)
+    lat = torch.randn(1, A, L)
+    a = m(pose[None, 5:6], rr[None, 5:6], rt[None, 5:6], lat)
+    pose2 = pose.clone()
+    pose2[:5] += 1.0  # earlier frames never enter
+    b = m(pose2[None, 5:6], rr[None, 5:6], rt[None, 5:6], lat)
+    torch.testing.assert_close(a, b)
+    with pytest.raises(ValueError, match="history"):
+        model(history=2)  # velocities need >= 3
+
+
+def test_global_latent_pca_projects_onto_a_shared_low_rank_subspace():
+    g = torch.Generator().manual_seed(0)
+    F = 60
+    causes = torch.randn(F, 2, generator=g)  # two causes drive every anchor
+    mix = torch.randn(2, A * L, generator=g)
+    lat = (causes @ mix).reshape(F, A, L) * 0.5 + 3.0
+    m = model(latent_pca="global", latent_pca_components=2, clamp_sigma=10.0)
+    m.fit_latent_statistics(lat)
+    torch.testing.assert_close(m.clamp_latents(lat), lat, atol=1e-4, rtol=1e-4)  # inside the subspace: unchanged
+    off = lat + 0.3 * torch.randn(F, A, L, generator=g)
+    err_in, err_out = (m.clamp_latents(off) - lat).pow(2).mean(), (off - lat).pow(2).mean()
+    assert err_in < 0.5 * err_out  # noise outside the 2-d subspace is removed
+    with pytest.raises(ValueError, match="latent_pca_components"):
+        model(latent_pca="global", latent_pca_components=A * L + 1)
+
+
+def test_zero_latents_are_the_standardised_zero():
+    m = model()
+    lat = torch.randn(20, A, L) + 2.0
+    torch.testing.assert_close(m.zero_latents(), torch.zeros(A, L))  # before the statistics are fit
+    m.fit_latent_statistics(lat)
+    torch.testing.assert_close(m.zero_latents(), lat.mean(0))
+    m.config = dataclasses.replace(m.config, zero_context="raw")
+    torch.testing.assert_close(m.zero_latents(), torch.zeros(A, L))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 from pathlib import Path
 
@@ -80,7 +82,12 @@ def test_dual_context_loss_has_two_passes_both_with_gradients():
     for part in (d.gt, d.zero):
         grads = torch.autograd.grad(part, params, retain_graph=True, allow_unused=True)
         assert sum(float(g.abs().sum()) for g in grads if g is not None) > 0
-    # the zero pass really starts from zeros: same as an explicit unroll with zero context
+    # the zero pass really starts from the standardised zero (the training-mean latent): same as an explicit
+    # unroll from it; with zero_context="raw" from the zero vector
+    z = unroll(m, data, rows, seg, m.latent_mean.expand(3, A, L))
+    assert float(temporal_l1_terms(z.detach(), data.latents[rows])["l1"]) == pytest.approx(d.logs["zero_l1"], rel=1e-5)
+    m.config = dataclasses.replace(m.config, zero_context="raw")
+    d = dual_context_loss(m, data, rows, seg)
     z = unroll(m, data, rows, seg, torch.zeros(3, A, L))
     assert float(temporal_l1_terms(z.detach(), data.latents[rows])["l1"]) == pytest.approx(d.logs["zero_l1"], rel=1e-5)
 

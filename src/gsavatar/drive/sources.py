@@ -151,13 +151,15 @@ class Predicted(LatentSource):
 
 
 class ZeroInit(Predicted, mode="predictor"):
-    """Previous latents of frame 0 = zeros, every frame predicted (the paper's fallback without textures;
-    ramps up over the first frames)."""
+    """Previous latents of frame 0 = "zeros" (the paper's fallback without textures; ramps up over the first
+    frames), every frame predicted. Zero in the predictor's standardised latent space, i.e. its training-mean
+    latent (``PredictorConfig.zero_context``; raw zeros for predictors trained before it existed)."""
 
     ramp_up = True
 
     def initial_latents(self, x: FrameInputs) -> Tensor:
-        return self.ctx.zeros()
+        zero = getattr(self.ctx.predictor, "zero_latents", None)
+        return zero().to(self.ctx.device) if zero is not None else self.ctx.zeros()
 
 
 class PoseInit(Predicted, mode="pose_init"):

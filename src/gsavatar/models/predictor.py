@@ -53,7 +53,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -73,7 +73,10 @@ class PredictorConfig:
     """Hyper-parameters of the appearance predictor (defaults: the paper's, supp. D.3)."""
 
     history: int = 10
-    """N_b: poses in the window, the current frame included (paper: 10). >= 3."""
+    """N_b: poses in the window, the current frame included (paper: 10). >= 3 with ``velocities``, else >= 1."""
+    velocities: bool = True
+    """Token features are the window's values, velocities and accelerations (the paper's); False: values only
+    (with ``history=1`` the no-history ablation: the current pose alone)."""
     width: int = 128
     """Token (embedding) dimension (paper: 128)."""
     heads: int = 4
@@ -90,6 +93,11 @@ class PredictorConfig:
     """K: components of the per-anchor latent PCA that clamps the outputs (<= latent_dim)."""
     clamp_sigma: float = 2.0
     """Latent PCA coefficients are clamped to ±clamp_sigma·σ."""
+    latent_pca: Literal["anchor", "global"] = "anchor"
+    """Output clamp: ``anchor`` = one PCA per anchor with ``latent_pca_components`` components (the paper's
+    clamp); ``global`` = one PCA of all anchors' standardised latents together, ``latent_pca_components``
+    components for the whole avatar (beyond the paper: appearance that a few causes drive is low-rank across
+    anchors, and predictions outside that subspace are noise). Measured in docs/train.md."""
     dropout: float = 0.0
     """Dropout inside the transformer block (0: training and streaming are deterministic)."""
     residual: bool = True
@@ -97,6 +105,11 @@ class PredictorConfig:
     which leaves the output form open): the untrained predictor is persistence, a strong answer for
     appearance that dwells, and training moves away from it only where the data supports it. False:
     ``l_t = mean + scale * head(h)``. Measured in docs/train.md."""
+    zero_context: Literal["mean", "raw"] = "mean"
+    """What "zero" previous latents are (the zero-context training pass and zero-init driving): ``mean`` = zero in
+    the predictor's standardised latent space, i.e. the training-mean latent (our encoder's latents are not
+    zero-mean: raw zeros lie ~2x farther from every frame's latents than the mean does); ``raw`` = the zero
+    vector (checkpoints written before this field). Measured in docs/train.md."""
     initial_net: bool = True
     """Build the pose-conditioned :class:`InitialLatentNet` (beyond the paper)."""
     initial_hidden: int = 128
@@ -247,19 +260,26 @@ class AppearancePredictor(nn.Module):
                  pose_dim: int, pose_pca: tuple | None = None, seed: int = 0) -> None:
         super().__init__()
         c = config
-        if c.history < 3:
-            raise ValueError(f"config.history must be >= 3 (value, velocity, acceleration), got {c.history}")
+        if c.history < (3 if c.velocities else 1):
+            raise ValueError(f"config.history must be >= 3 (value, velocity, acceleration) or >= 1 without "
+                             f"velocities, got {c.history} (velocities={c.velocities})")
         if c.width % c.heads:
             raise ValueError(f"config.width ({c.width}) must be divisible by config.heads ({c.heads})")
-        if not 0 <= c.latent_pca_components <= c.latent_dim:
+        if c.latent_pca not in ("anchor", "global"):
+            raise ValueError(f"config.latent_pca must be 'anchor' or 'global', got {c.latent_pca!r}")
+        if c.latent_pca == "anchor" and not 0 <= c.latent_pca_components <= c.latent_dim:
             raise ValueError(f"config.latent_pca_components must be in [0, {c.latent_dim}], got {c.latent_pca_components}")
+        if c.latent_pca == "global" and not 0 < c.latent_pca_components <= num_anchors * c.latent_dim:
+            raise ValueError(f"config.latent_pca_components must be in [1, {num_anchors * c.latent_dim}] with a global "
+                             f"latent PCA, got {c.latent_pca_components}")
         slots = torch.as_tensor(np.asarray(pose_slots), dtype=torch.long).reshape(-1)
         if slots.numel() and (slots.min() < 0 or slots.max() >= pose_dim):
             raise ValueError(f"pose_slots must index [0, {pose_dim}), got range [{int(slots.min())}, {int(slots.max())}]")
         self.config, self.num_anchors, self.pose_dim = c, int(num_anchors), int(pose_dim)
-        A, L, K, D = self.num_anchors, c.latent_dim, c.latent_pca_components, c.width
+        A, L, D = self.num_anchors, c.latent_dim, c.width
+        K = c.latent_pca_components if c.latent_pca == "anchor" else 0
         S = int(slots.numel()) + ROOT_SLOTS
-        Fdim = 3 * c.history - 3
+        Fdim = 3 * c.history - 3 if c.velocities else c.history
         self.num_slots, self.feature_dim = S, Fdim
         f32 = lambda a: None if a is None else torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
         self.register_buffer("pose_slots", slots)  # [S - 6]
@@ -274,6 +294,10 @@ class AppearancePredictor(nn.Module):
         self.register_buffer("latent_basis", torch.zeros(A, L, K))
         self.register_buffer("latent_limit", torch.zeros(A, K))
         self.register_buffer("latent_pca_ready", torch.tensor(False))
+        if c.latent_pca == "global":  # only then: checkpoints of per-anchor predictors keep their state_dict keys
+            Kg = c.latent_pca_components
+            self.register_buffer("global_basis", torch.zeros(A * L, Kg))  # [A*L, Kg] standardised space
+            self.register_buffer("global_limit", torch.zeros(Kg))  # [Kg]
         self.register_buffer("initial_ready", torch.tensor(False))
         self.register_buffer("positional", sinusoidal_encoding(S + A, D), persistent=False)  # [S + A, D]
 
@@ -311,8 +335,9 @@ class AppearancePredictor(nn.Module):
         return torch.cat([pose, relative_root_motion(root_rot_window, root_trans_window)], -1)
 
     def features(self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor) -> Tensor:
-        """Raw (unnormalised) token features. -> [B, S, 3N-3]"""
-        return window_features(self.slot_values(pose_window, root_rot_window, root_trans_window))
+        """Raw (unnormalised) token features. -> [B, S, 3N-3] (values only: [B, S, N])"""
+        x = self.slot_values(pose_window, root_rot_window, root_trans_window)
+        return window_features(x) if self.config.velocities else x.transpose(1, 2)
 
     @torch.no_grad()
     def fit_input_normalization(self, features: Tensor, min_std: float = 1e-6) -> None:
@@ -335,20 +360,36 @@ class AppearancePredictor(nn.Module):
         anchors and dims (so near-constant dims are not blown up). Returns the PCA fit.
         """
         _check("latents", latents, (None, self.num_anchors, self.config.latent_dim))
-        pca = fit_latent_pca(latents, self.config.latent_pca_components)
+        pca = fit_latent_pca(latents, self.config.latent_pca_components if self.config.latent_pca == "anchor" else 0)
         std = latents.double().std(0, unbiased=False) if latents.shape[0] > 1 else torch.zeros_like(pca.mean).double()
         floor = max(rel_floor * float(std.pow(2).mean().sqrt()), 1e-8)
         self.latent_scale.copy_(std.clamp_min(floor))
         self.latent_mean.copy_(pca.mean)
         self.latent_basis.copy_(pca.basis)
         self.latent_limit.copy_(self.config.clamp_sigma * pca.sigma)
+        if self.config.latent_pca == "global":
+            z = ((latents.double() - pca.mean.double()) / self.latent_scale.double()).reshape(latents.shape[0], -1)
+            g = fit_latent_pca(z[:, None], self.config.latent_pca_components)  # one "anchor" holding everything
+            self.global_basis.copy_(g.basis[0])
+            self.global_limit.copy_(self.config.clamp_sigma * g.sigma[0])
         self.latent_pca_ready.fill_(True)
         return pca
+
+    def zero_latents(self) -> Tensor:
+        """The "zero" previous latents of a rollout without a texture (``config.zero_context``).  # [A, L]"""
+        if self.config.zero_context == "mean" and bool(self.latent_pca_ready):
+            return self.latent_mean.clone()
+        return torch.zeros_like(self.latent_mean)
 
     def clamp_latents(self, latents: Tensor) -> Tensor:
         """Latent PCA projection with ±clamp_sigma·σ clamping (identity before it is fit). [..., A, L]"""
         if not bool(self.latent_pca_ready):
             return latents
+        if self.config.latent_pca == "global":
+            z = ((latents - self.latent_mean) / self.latent_scale).flatten(-2)[..., None, :]  # [..., 1, A*L]
+            zero = torch.zeros_like(self.global_basis[None, :, 0])
+            z = latent_pca_project(z, zero, self.global_basis[None], self.global_limit[None])[..., 0, :]
+            return self.latent_mean + self.latent_scale * z.unflatten(-1, latents.shape[-2:])
         return latent_pca_project(latents, self.latent_mean, self.latent_basis, self.latent_limit)
 
     # ------------------------------------------------------------------ forward

@@ -83,8 +83,9 @@ def predictor_from_checkpoint(path: Path, device: str | torch.device = "cpu") ->
     """Rebuild a trained predictor from its checkpoint alone (slots and pose PCA are buffers)."""
     state = load_checkpoint(path)
     sd = state["modules"]["predictor"]
-    # checkpoints written before ``residual`` existed predicted ``mean + scale * head``
-    cfg = PredictorConfig(**{"residual": False, **state["config"]["model"]})
+    # checkpoints written before ``residual`` existed predicted ``mean + scale * head``; before ``zero_context``
+    # their zero-init started from the zero vector
+    cfg = PredictorConfig(**{"residual": False, "zero_context": "raw", **state["config"]["model"]})
     pca = (sd["pose_pca_mean"], sd["pose_pca_basis"], sd["pose_pca_limit"]) if "pose_pca_basis" in sd else None
     m = AppearancePredictor(cfg, sd["latent_mean"].shape[0], sd["pose_slots"], int(state["config"]["pose_dim"]), pca)
     m.load_state_dict(sd)

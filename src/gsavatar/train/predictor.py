@@ -8,8 +8,8 @@ one contiguous segment (``s`` >= segment start + 1, so frame ``s-1`` has a targe
 pose history of every frame is its ``N_b`` most recent frames, clamped at the segment
 start (= repeating the first frame, like :meth:`AppearancePredictor.init_state`). The
 predictor is unrolled over the window, feeding back its own (clamped) predictions;
-the first step gets the target latents of ``s-1`` (GT-context pass) or zeros
-(zero-context pass). Both passes run as one doubled batch; their losses are summed:
+the first step gets the target latents of ``s-1`` (GT-context pass) or the "zero" latents
+(zero-context pass; :meth:`AppearancePredictor.zero_latents`: the training mean by default). Both passes run as one doubled batch; their losses are summed:
 per pass L1 on the latents + L1 on the velocity, acceleration and jerk (1st..3rd finite
 differences over the unrolled window) against those of the targets, all weight 1.
 The optional InitialLatentNet is trained alongside on random train frames (L1).
@@ -230,7 +230,8 @@ def dual_context_loss(model: AppearancePredictor, data: SequenceData, rows: Tens
     dev = data.latents.device
     rows = rows.to(dev)
     gt_prev = data.latents[rows[:, 0] - 1]  # [B, A, L]
-    pred = unroll(model, data, rows.repeat(2, 1), seg_start.repeat(2), torch.cat([gt_prev, torch.zeros_like(gt_prev)]),
+    zero = model.zero_latents().to(gt_prev).expand_as(gt_prev)
+    pred = unroll(model, data, rows.repeat(2, 1), seg_start.repeat(2), torch.cat([gt_prev, zero]),
                   detach_feedback)  # [2B, T, A, L]
     target = data.latents[rows]  # [B, T, A, L]
     tg, tz = temporal_l1_terms(pred[:B], target), temporal_l1_terms(pred[B:], target)
@@ -255,7 +256,8 @@ def build_predictor(scene, config: PredictorConfig, latent_dim: int, avatar_pca:
     pca = {"local": scene.pca_local, "global": scene.pca_global, "global_test_only": scene.pca_global}.get(avatar_pca)
     pose_pca = None if pca is None else (pca.mean, pca.basis, pca.clamp_sigma * pca.sigma)
     cfg = dataclasses.replace(config, latent_dim=int(latent_dim),
-                              latent_pca_components=min(config.latent_pca_components, int(latent_dim)))
+                              latent_pca_components=config.latent_pca_components if config.latent_pca == "global"
+                              else min(config.latent_pca_components, int(latent_dim)))
     return AppearancePredictor(cfg, scene.hierarchy.num_anchors, slots, scene.capture.rig.pose_dim, pose_pca, seed)
 
 
@@ -269,11 +271,11 @@ def prepare_model(model: AppearancePredictor, data: SequenceData, segments: list
     feats = torch.cat([model.features(data.pose[h], data.root_rotation[h], data.root_translation[h])
                        for h in hist.split(chunk)])
     model.fit_input_normalization(feats)
-    pca = model.fit_latent_statistics(data.latents[rows])
+    model.fit_latent_statistics(data.latents[rows])
     lat = data.latents[rows].double()
     total = float(((lat - lat.mean(0)) ** 2).sum())
-    kept = float(((pca.sigma.double() ** 2) * (len(rows) - 1)).sum())
-    return {"train_frames": int(len(rows)), "latent_pca_explained_variance": kept / total if total > 0 else 1.0}
+    lost = float(((model.clamp_latents(data.latents[rows]).double() - lat) ** 2).sum())  # what the clamp removes
+    return {"train_frames": int(len(rows)), "latent_pca_explained_variance": 1.0 - lost / total if total > 0 else 1.0}
 
 
 # ----------------------------------------------------------------------------- evaluation
@@ -295,7 +297,7 @@ def evaluate_predictor(model: AppearancePredictor, data: SequenceData, segments:
         if e - s < 2:
             continue
         P, R, Tr, gt = (x[s:e] for x in (data.pose, data.root_rotation, data.root_translation, data.latents))
-        zeros = torch.zeros_like(gt[0])
+        zeros = model.zero_latents().to(gt)
         runs = {"teacher_first": model.rollout(P, R, Tr, gt[0], first_is_given=True),
                 "zero_init": model.rollout(P, R, Tr, zeros)}
         if use_init:
@@ -340,7 +342,8 @@ class PredictorTrainer:
         if self.ckpt.exists():
             state = load_checkpoint(self.ckpt, self.config, strict_config_keys=(
                 "model", "num_anchors", "pose_dim", "targets_step", "train.seed", "train.batch_size", "train.window"),
-                defaults={"model": {**dataclass_defaults(PredictorConfig), "residual": False}})  # pre-``residual``: absolute
+                defaults={"model": {**dataclass_defaults(PredictorConfig), "residual": False, "zero_context": "raw"}})
+            # older checkpoints: absolute outputs (pre-``residual``), raw zero context (pre-``zero_context``)
             model.load_state_dict(state["modules"]["predictor"])
             self.optim.load_state_dict(state["optimizer"])
             self.step = int(state["step"])
