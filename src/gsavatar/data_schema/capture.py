@@ -26,7 +26,7 @@ import numpy as np
 from gsavatar.utils.errors import SchemaError
 from gsavatar.data_schema.rig import Rig, load_rig
 from gsavatar.data_schema.template import Template, load_template
-from gsavatar.data_schema.limits import check_fps
+from gsavatar.data_schema.limits import check_fps, check_motion_values
 from gsavatar.utils.jsonio import is_int
 from gsavatar.utils.paths import check_name
 
@@ -236,6 +236,8 @@ def load_motion(path: Path, num_frames: int, pose_dim: int, frames_from: Path | 
         if bad.any():
             f, c = np.argwhere(bad)[0]
             raise SchemaError(path, key, f"{int(bad.sum())} NaN/Inf values (first at frame {f}, column {c})")
+        if key != "face":  # radians and metres (face embeddings have no units)
+            check_motion_values(a, path, key)
     return Motion(arrays["pose"], arrays["root_rotation"], arrays["root_translation"], face)
 
 
@@ -330,6 +332,8 @@ def check_images(cap: Capture, frames: list[int] | None = None, cams: list[str] 
     """Verify every image/mask exists and has the calibrated size (reads headers only)."""
     import OpenImageIO as oiio
 
+    from gsavatar.utils.io import oiio_error
+
     frames = list(range(cap.num_frames)) if frames is None else frames
     for cam in cams or list(cap.cameras):
         c = cap.cameras[cam]
@@ -341,7 +345,7 @@ def check_images(cap: Capture, frames: list[int] | None = None, cams: list[str] 
                     raise SchemaError(p, "", "not a regular file")
                 inp = oiio.ImageInput.open(str(p))
                 if inp is None:
-                    raise SchemaError(p, "", f"cannot open image: {oiio.geterror()}")
+                    raise SchemaError(p, "", f"cannot open image: {oiio_error(oiio.geterror)}")
                 spec = inp.spec()
                 inp.close()
                 w, h = spec.width, spec.height

@@ -11,6 +11,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
+
 from gsavatar.utils.errors import SchemaError
 
 MIN_FPS = 1.0
@@ -21,6 +23,22 @@ MAX_FPS = 1000.0
 MAX_RESAMPLED_FRAMES = 200_000
 """Most output frames a resampled motion may have: 1.85 h at 30 fps. The driver renders every frame, and
 the resampler keeps a few float64 ``[T, pose_dim]`` arrays (160 MB each at T = 200k, 100 parameters)."""
+
+
+MAX_MOTION_VALUE = 1e4
+"""Largest |value| in a driving motion's pose, root rotation and root translation: radians (1600 turns, an
+unwrapped spin) and metres (10 km). A finite 1e38 overflowed: rotation maths gave NaN (or "SVD did not
+converge") and the float32 conversion inf."""
+
+
+def check_motion_values(a: np.ndarray, file: str | Path, field: str) -> None:
+    """SchemaError(file, field) naming the first value of ``a`` (finite, frames first) beyond +-MAX_MOTION_VALUE."""
+    big = np.abs(np.asarray(a, dtype=np.float64)) > MAX_MOTION_VALUE  # float: abs(int64 min) stays negative
+    if big.any():
+        at = tuple(int(i) for i in np.argwhere(big)[0])
+        where = f"frame {at[0]}, column {at[1]}" if len(at) == 2 else f"index {list(at)}"
+        raise SchemaError(file, field, f"{int(big.sum())} values beyond +-{MAX_MOTION_VALUE:g} (first at {where}: "
+                                       f"{float(a[at]):g}); radians and metres are expected")
 
 
 def fps_problem(fps: float) -> str | None:

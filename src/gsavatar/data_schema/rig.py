@@ -221,7 +221,7 @@ def rig_from_json(obj: dict, file: str | Path = "rig.json") -> Rig:
         if not isinstance(names, list):
             raise SchemaError(file, f"groups.{g}", f"must be a list of parameter names, got {type(names).__name__}")
         for n in names:
-            if n not in pnames:
+            if not isinstance(n, str) or n not in pnames:  # a list there is unhashable: TypeError, not this
                 raise SchemaError(file, f"groups.{g}", f"unknown pose parameter {n!r}")
             if n in owner:
                 raise SchemaError(file, f"groups.{g}", f"parameter {n!r} is also in group {owner[n]!r}")

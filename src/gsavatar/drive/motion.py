@@ -22,7 +22,7 @@ from typing import NamedTuple
 import numpy as np
 
 from gsavatar.data_schema import Capture, Rig, SchemaError, load_capture
-from gsavatar.data_schema.limits import check_fps, check_resampled_frames, fps_problem
+from gsavatar.data_schema.limits import check_fps, check_motion_values, check_resampled_frames, fps_problem
 from gsavatar.motion.amass import AMASS_KEYS, UpAxis, is_amass, read_amass
 from gsavatar.motion.joint_names import read_joint_map
 from gsavatar.motion.resample import resample_motion
@@ -66,7 +66,8 @@ class DrivingMotion(NamedTuple):
 
 # --------------------------------------------------------------------------- validation + loading
 def validate_arrays(path: Path, arrays: dict[str, np.ndarray | None], pose_dim: int, face_dim: int | None = None) -> None:
-    """Shapes [T,P]/[T,3]/[T,3]/[T,E], T >= 1, all finite. Raises SchemaError(path, field)."""
+    """Shapes [T,P]/[T,3]/[T,3]/[T,E], T >= 1, all finite, pose and root within +-MAX_MOTION_VALUE, face within
+    float32. Raises SchemaError(path, field)."""
     T = None
     for key, width in (("pose", pose_dim), ("root_rotation", 3), ("root_translation", 3), ("face", face_dim)):
         a = arrays.get(key)
@@ -87,6 +88,10 @@ def validate_arrays(path: Path, arrays: dict[str, np.ndarray | None], pose_dim: 
         if bad.any():
             f, c = np.argwhere(bad)[0]
             raise SchemaError(path, key, f"{int(bad.sum())} NaN/Inf values (first at frame {f}, column {c})")
+        if key != "face":
+            check_motion_values(a, path, key)
+        elif (np.abs(a.astype(np.float64)) > np.finfo(np.float32).max).any():  # no units, but stored as float32
+            raise SchemaError(path, key, "values beyond the float32 range (they would become inf)")
     if not T:
         raise SchemaError(path, "pose", "no frames")
 

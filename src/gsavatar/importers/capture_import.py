@@ -26,7 +26,7 @@ from gsavatar.importers.smplx_body import write_smplx_capture_body
 from gsavatar.importers.smplx_model import SmplxModel
 from gsavatar.importers.smplx_params import load_smplx_params
 from gsavatar.utils.errors import SchemaError
-from gsavatar.utils.io import atomic_link, atomic_write_json, write_image
+from gsavatar.utils.io import atomic_link, atomic_write_json, imread, write_image
 from gsavatar.utils.paths import check_regular_file
 
 MASK_THRESHOLD = 128
@@ -128,9 +128,7 @@ def convert_mask(src_file: Path, dst_file: Path, width: int, height: int) -> Non
     """A source's grey JPEG mask -> a 0/255 PNG (foreground > :data:`MASK_THRESHOLD`)."""
     import cv2
 
-    raw = cv2.imread(str(check_regular_file(src_file, "mask file")), cv2.IMREAD_GRAYSCALE)
-    if raw is None:
-        raise SchemaError(src_file, "", "cannot decode mask (truncated or not an image)")
+    raw = imread(check_regular_file(src_file, "mask file"), cv2.IMREAD_GRAYSCALE, "mask")
     if raw.shape != (height, width):
         raise SchemaError(src_file, "size", f"is {raw.shape[1]}x{raw.shape[0]}, the calibration says {width}x{height}")
     write_image(dst_file, (raw > MASK_THRESHOLD).astype(np.float32))

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gsavatar.data_schema.limits import check_motion_values
 from gsavatar.importers.smplx_model import NUM_JOINTS, SmplxModel
 from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.io import read_npz
@@ -90,6 +91,8 @@ class SmplxParams:
             bad = ~np.isfinite(a)
             if bad.any():
                 raise SchemaError(file, k, f"{int(bad.sum())} NaN/Inf values (first at {np.argwhere(bad)[0].tolist()})")
+            if k in PER_FRAME and k != "expression":  # radians and metres (1e308 broke the rotation maths)
+                check_motion_values(a, file, k)
             out[k] = a
         go = out["global_orient"]
         if go.ndim == 3 and go.shape[1:] == (1, 3):

@@ -31,7 +31,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from gsavatar.data_schema.limits import check_fps
+from gsavatar.data_schema.limits import check_fps, check_motion_values
 from gsavatar.data_schema.rig import Rig
 from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.io import read_npz
@@ -97,6 +97,7 @@ def _array(z: dict, path: Path, key: str, width: int) -> np.ndarray:
     if bad.any():
         f, c = np.argwhere(bad)[0]
         raise SchemaError(path, key, f"{int(bad.sum())} NaN/Inf values (first at frame {f}, column {c})")
+    check_motion_values(a, path, key)  # before the rotation maths: 1e308 made scipy's SVD fail
     return a.astype(np.float64)
 
 

@@ -18,7 +18,7 @@ import torch
 
 from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.io import atomic_write_bytes
-from gsavatar.utils.jsonio import parse_json_text
+from gsavatar.utils.jsonio import is_int, parse_json_text
 
 CHECKPOINT_FORMAT = "gsavatar-avatar-checkpoint"
 CHECKPOINT_VERSION = 1
@@ -65,10 +65,15 @@ def load_checkpoint(path: str | Path, config: dict | None = None, strict_config_
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - torch raises many types for corrupt files
         raise SchemaError(path, "", f"cannot load checkpoint (truncated or not a gsavatar checkpoint): {type(e).__name__}") from None
-    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+    # isinstance first: a tensor stored under a key would make ``!=`` a tensor ("Boolean value ... ambiguous")
+    if not isinstance(state, dict) or not isinstance(state.get("format"), str) or state["format"] != CHECKPOINT_FORMAT:
         raise SchemaError(path, "format", "not a gsavatar avatar checkpoint")
-    if state.get("version") != CHECKPOINT_VERSION:
-        raise SchemaError(path, "version", f"unsupported checkpoint version {state.get('version')!r}")
+    if not is_int(state.get("version")) or state["version"] != CHECKPOINT_VERSION:
+        raise SchemaError(path, "version", f"unsupported checkpoint version {state.get('version')!r}"[:200])
+    if not is_int(state.get("step")) or state["step"] < 0:
+        raise SchemaError(path, "step", f"expected an integer >= 0, got {state.get('step')!r}"[:200])
+    if not isinstance(state.get("modules"), dict) or not all(isinstance(v, dict) for v in state["modules"].values()):
+        raise SchemaError(path, "modules", "expected an object of state dicts (not a gsavatar avatar checkpoint)")
     if not isinstance(state.get("config"), str):
         raise SchemaError(path, "config", "missing (not a gsavatar avatar checkpoint)")
     saved = parse_json_text(state["config"], path)

@@ -170,8 +170,10 @@ def model_config_from_json(d: dict, file: str | Path) -> ModelConfig:
     unknown = sorted(set(d) - names)
     if unknown:
         raise SchemaError(file, f"model.{unknown[0]}", "unknown field (a newer gsavatar wrote this run?)")
+    hints = typing.get_type_hints(ModelConfig)  # typed like the train fields: "true" is no int, null no float
+    typed = {k: _typed(v, hints[k], file, f"model.{k}") for k, v in d.items()}
     try:
-        return ModelConfig(**{**dataclass_defaults(ModelConfig), **d})
+        return ModelConfig(**{**dataclass_defaults(ModelConfig), **typed})
     except (TypeError, ValueError) as e:
         raise SchemaError(file, "model", str(e)) from None
 
@@ -221,8 +223,13 @@ def from_json(d: dict, file: str | Path, prefix: str = "train") -> TrainConfig:
 
 
 def _typed(v, hint, file: str | Path, field: str):
-    """``v`` converted to ``hint`` (Path, Path | None, int, float, bool, str, Literal); SchemaError otherwise."""
+    """``v`` converted to ``hint`` (Path, Path | None, int, float, bool, str, Literal, ``tuple[X, ...]`` from a
+    JSON list); SchemaError otherwise."""
     args = typing.get_args(hint)
+    if typing.get_origin(hint) is tuple:
+        if not isinstance(v, list):
+            raise SchemaError(file, field, f"expected a list, got {v!r}"[:200])
+        return tuple(_typed(x, args[0], file, f"{field}[{i}]") for i, x in enumerate(v))
     if typing.get_origin(hint) is Literal:
         if v not in args or isinstance(v, bool):
             raise SchemaError(file, field, f"expected one of {list(args)}, got {v!r}")

@@ -129,6 +129,31 @@ MAX_IMAGE_PIXELS = 1 << 28
 """Largest image read (268M pixels, e.g. 16k x 16k); OpenCV refuses above 2^30 pixels by itself."""
 
 
+def oiio_error(geterror) -> str:
+    """OpenImageIO's error text (``buf.geterror`` or ``oiio.geterror``): a message quoting the bytes of a corrupt
+    header is not UTF-8, and reading it raised UnicodeDecodeError instead of naming the file."""
+    try:
+        return geterror()
+    except UnicodeDecodeError:
+        return "corrupt header (the error message is not text)"
+
+
+def imread(path: Path, flags: int, what: str = "image") -> np.ndarray:
+    """``cv2.imread`` of a checked regular file; SchemaError naming ``path`` when it cannot be decoded. OpenCV
+    returns None for most broken files but raises ``cv2.error`` for a header claiming more than 2^30 pixels
+    (a 65536 x 65536 PNG IHDR)."""
+    import cv2
+
+    try:
+        raw = cv2.imread(str(path), flags)
+    except cv2.error as e:
+        reason = getattr(e, "err", None) or str(e).strip()
+        raise SchemaError(path, "", f"cannot decode {what}: OpenCV refused it ({reason})") from None
+    if raw is None:
+        raise SchemaError(path, "", f"cannot decode {what} (truncated or not an image)")
+    return raw
+
+
 def read_image(path: str | Path, keep_uint8: bool = False) -> np.ndarray:
     """Read an image as float32 RGB in [0, 1] (EXR: linear values as stored).  # [H, W, 3]
 
@@ -147,13 +172,17 @@ def read_image(path: str | Path, keep_uint8: bool = False) -> np.ndarray:
         buf = oiio.ImageBuf(str(path))
         spec = buf.spec()
         if buf.has_error:
-            raise SchemaError(path, "", f"cannot decode EXR: {buf.geterror()}")
+            raise SchemaError(path, "", f"cannot decode EXR: {oiio_error(buf.geterror)}")
         if spec.width * spec.height > MAX_IMAGE_PIXELS:
             raise SchemaError(path, "size", f"{spec.width}x{spec.height} pixels, more than the {MAX_IMAGE_PIXELS} "
                                             "an image may have")
+        # Decode and check before the float copy: missing or corrupt scanline chunks (a header claiming 2305x2817
+        # pixels in a 1 KB file) came back as an image of zeros, the error left pending.
+        if not buf.read(0, 0, True) or buf.has_error:
+            raise SchemaError(path, "", f"cannot decode EXR: {oiio_error(buf.geterror)}")
         arr = buf.get_pixels(oiio.FLOAT)
         if arr is None or arr.size == 0:
-            raise SchemaError(path, "", f"cannot decode EXR: {buf.geterror()}")
+            raise SchemaError(path, "", f"cannot decode EXR: {oiio_error(buf.geterror)}")
         arr = np.asarray(arr, dtype=np.float32)
         if arr.ndim == 2:
             arr = arr[..., None]
@@ -163,9 +192,7 @@ def read_image(path: str | Path, keep_uint8: bool = False) -> np.ndarray:
         # JPEG: decode like every viewer does, with the EXIF orientation applied (IMREAD_UNCHANGED ignores
         # it, and a phone's portrait photo would be read sideways); check_images compares the upright size.
         jpeg = path.suffix.lower() in (".jpg", ".jpeg")
-        raw = cv2.imread(str(path), cv2.IMREAD_COLOR if jpeg else cv2.IMREAD_UNCHANGED)
-        if raw is None:
-            raise SchemaError(path, "", "cannot decode image (truncated or not an image)")
+        raw = imread(path, cv2.IMREAD_COLOR if jpeg else cv2.IMREAD_UNCHANGED)
         # Channel order and grey -> RGB on the decoded integers (one SIMD pass), then one division: the same
         # values as converting first (float32 x / scale), ~5x less time on large JPEGs.
         if raw.ndim == 3 and raw.shape[2] == 1:
@@ -206,6 +233,8 @@ def decode_mask(raw: np.ndarray, path: str | Path = "mask") -> np.ndarray:
     """
     if raw.dtype not in (np.uint8, np.uint16):
         raise SchemaError(path, "", f"mask pixels must be 8- or 16-bit integers, got {raw.dtype}; masks are {MASK_ENCODINGS}")
+    if raw.size == 0:  # the reductions below have no identity for zero pixels
+        raise SchemaError(path, "", f"mask of shape {list(raw.shape)} has no pixels")
     if raw.ndim == 3 and raw.shape[2] == 1:
         raw = raw[..., 0]
     if raw.ndim == 3:
@@ -232,9 +261,7 @@ def read_mask(path: str | Path) -> np.ndarray:
     import cv2
 
     path = check_regular_file(path, "mask file")
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None:
-        raise SchemaError(path, "", "cannot decode mask (truncated or not an image)")
+    raw = imread(path, cv2.IMREAD_UNCHANGED, "mask")
     return decode_mask(raw, path)
 
 
@@ -269,8 +296,9 @@ def write_image(path: str | Path, img: np.ndarray) -> None:
     atomic_write_bytes(path, enc.tobytes())
 
 
-NPZ_READ_ERRORS = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)
-"""What ``np.load`` and reading its arrays raise for a truncated, corrupt or pickled npz."""
+NPZ_READ_ERRORS = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, RuntimeError)
+"""What ``np.load`` and reading its arrays raise for a truncated, corrupt or pickled npz (RuntimeError: a member
+flagged as encrypted; its subclass NotImplementedError: an unknown zip version or compression method)."""
 MAX_NPZ_ARRAY_BYTES = 2 << 30
 """Largest array read from an npz (uncompressed): 2 GiB, 20x our largest (a paper-preset hierarchy or
 localization is ~100 MB). Deflate shrinks zeros ~1000x, so a 2 MB file can hold a 2 GB array."""

@@ -49,6 +49,20 @@ def actorshq_camera_entry(row: dict[str, float]) -> dict:
 def read_actorshq_calibration(file: Path) -> tuple[dict[str, Camera], dict[str, str]]:
     """An ActorsHQ ``calibration.csv`` as our cameras (``x_cam = R x_world + T``, OpenCV axes, pixels, metres),
     validated by the capture schema's own checks. -> (capture name -> Camera, capture name -> source name)."""
+    try:
+        rows = _csv_rows(file)
+    except UnicodeDecodeError:
+        raise SchemaError(file, "", "not a UTF-8 text file") from None
+    except csv.Error as e:  # e.g. a field over csv.field_size_limit(); not a ValueError
+        raise SchemaError(file, "", f"not a readable CSV file: {e}") from None
+    if not rows:
+        raise SchemaError(file, "", "lists no camera")
+    names = plain_names(list(rows))
+    return parse_calibration({n: actorshq_camera_entry(rows[k]) for n, k in names.items()}, file), names
+
+
+def _csv_rows(file: Path) -> dict[str, dict[str, float]]:
+    """Camera name -> the numbers of its ``calibration.csv`` row (SchemaError naming the line and column)."""
     with check_regular_file(file, "calibration file").open(newline="", encoding="utf-8") as fh:
         reader = csv.DictReader(fh)
         if reader.fieldnames is None or [f.strip() for f in reader.fieldnames] != list(CSV_FIELDS):
@@ -73,10 +87,7 @@ def read_actorshq_calibration(file: Path) -> tuple[dict[str, Camera], dict[str, 
                 if nums[k] != int(nums[k]) or nums[k] <= 0:
                     raise SchemaError(file, f"line {i}.{k}", f"must be a positive integer, got {raw.get(k)!r}")
             rows[key] = nums
-    if not rows:
-        raise SchemaError(file, "", "lists no camera")
-    names = plain_names(list(rows))
-    return parse_calibration({n: actorshq_camera_entry(rows[k]) for n, k in names.items()}, file), names
+    return rows
 
 
 @dataclass(frozen=True)

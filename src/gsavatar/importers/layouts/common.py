@@ -140,9 +140,9 @@ def read_missing_views(file: Path, source_names: dict[str, str]) -> set[tuple[st
         line = line.strip().replace("\\", "/")
         if not line:
             continue
-        parts = [p for p in line.split("/") if p]
+        parts = [p for p in line.split("/") if p] or [""]  # a line of slashes names no file
         stem = parts[-1].rsplit(".", 1)[0]
-        if not stem.isdigit():
+        if not (stem.isascii() and stem.isdigit()):  # str.isdigit also takes '²', which int() refuses
             raise SchemaError(file, f"line {i}", f"{line!r}: the file name is not a frame number")
         cam = next((p for p in reversed(parts[:-1]) if p in by_key), None)
         if cam is None:
