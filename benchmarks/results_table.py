@@ -30,9 +30,11 @@ from gsavatar.models.batch import FrameBatch
 from gsavatar.utils.io import atomic_write_json
 
 ROWS = [
-    # (label, run dir, drive mode)
+    # (label, run dir, drive mode[, predictor folder inside the run])
     ("Ours (predictor, encoder init)", "run_ours", "predictor_encoder_init"),
     ("Ours (predictor, zero init)", "run_ours", "predictor"),
+    ("Ours, no history: N_b = 1, no velocities (encoder init)", "run_ours", "predictor_encoder_init", "predictor_nohist"),
+    ("Ours, no history: N_b = 1, no velocities (zero init)", "run_ours", "predictor", "predictor_nohist"),
     ("Ours (predictor, pose init)", "run_ours", "pose_init"),
     ("Ours (re-init. 30)", "run_ours", "reinit"),
     ("Ours (re-init. 8)", "run_ours", "reinit8"),
@@ -45,12 +47,13 @@ ROWS = [
 ]
 
 
-def drive_row(run: Path, mode: str, out: Path, image_scale: float) -> dict:
-    """Drive the run's test frames in ``mode``; reuses ``out/row.json`` when it is newer than the run's checkpoints."""
+def drive_row(run: Path, mode: str, out: Path, image_scale: float, predictor: str = "predictor") -> dict:
+    """Drive the run's test frames in ``mode`` (with the predictor in ``run/predictor``); reuses ``out/row.json``
+    when it is newer than the run's checkpoints."""
     from gsavatar.drive.cli import main as drive
 
     cached = out / "row.json"
-    ckpts = [p for p in (run / "checkpoints" / "latest.pt", run / "predictor" / "latest.pt") if p.exists()]
+    ckpts = [p for p in (run / "checkpoints" / "latest.pt", run / predictor / "latest.pt") if p.exists()]
     if cached.exists() and all(cached.stat().st_mtime > p.stat().st_mtime for p in ckpts):
         row = json.loads(cached.read_text())
         if row.get("image_scale") == image_scale:
@@ -61,6 +64,8 @@ def drive_row(run: Path, mode: str, out: Path, image_scale: float) -> dict:
     extra = []
     if mode.startswith("reinit") and mode != "reinit":  # reinitK: encoder every K frames
         extra, mode = ["--reinit-every", mode[len("reinit"):]], "reinit"
+    if predictor != "predictor":
+        extra += ["--predictor", str(run / predictor / "latest.pt")]
     rc = drive(["--run", str(run), "--motion", capture, "--split", "test", "--mode", mode, "--out", str(out),
                 "--image-scale", str(image_scale), *extra])
     if rc:
@@ -139,14 +144,16 @@ def run_summary(run: Path) -> dict:
 def capture_tables(label: str, runs: Path, image_scale: float, params: list[str]) -> tuple[list[str], dict]:
     """Markdown lines and the JSON record of one capture's runs (``runs/run_*``)."""
     rows = []
-    for row_label, rdir, mode in ROWS:
+    for row_label, rdir, mode, *pred in ROWS:
         run = runs / rdir
+        pred = pred[0] if pred else "predictor"
         if not (run / "eval" / "metrics.json").exists():  # written when training has finished
             continue
-        if mode != "encoder" and rdir == "run_ours" and not (run / "predictor" / "eval.json").exists():
+        if mode != "encoder" and rdir == "run_ours" and not (run / pred / "eval.json").exists():
             continue
         print(f"[results] {label}: {row_label}", flush=True)
-        rows.append((row_label, rdir, mode, drive_row(run, mode, runs / "drive" / f"{rdir}_{mode}", image_scale)))
+        tag = f"{rdir}_{mode}" + ("" if pred == "predictor" else f"_{pred}")
+        rows.append((row_label, rdir, mode, drive_row(run, mode, runs / "drive" / tag, image_scale, pred)))
     loc = []
     for rdir in ("run_ours", "run_mmlps", "run_nrfgca", "run_wo_local_pose", "run_wo_local_pca"):
         if (runs / rdir / "eval" / "metrics.json").exists():
@@ -196,7 +203,45 @@ def capture_tables(label: str, runs: Path, image_scale: float, params: list[str]
     ours, oracle = summaries.get("run_ours", {}), summaries.get("run_oracle", {})
     if ours.get("latent_gain_db") is not None and oracle.get("latent_gain_db"):
         record["latent_gain_vs_oracle"] = ours["latent_gain_db"] / oracle["latent_gain_db"]
+    by_label = {lab: m for lab, _, _, m in rows}
+    mean = ours.get("test_frames_heldout_cams_mean_latent", {}).get("psnr_fg")
+    enc, zero = (by_label.get(f"Ours ({k})", {}).get("psnr_fg") for k in ("encoder", "predictor, zero init"))
+    if None not in (mean, enc, zero) and enc > mean:
+        # the zero-init predictor's gain over the training-mean latent / the encoder's (test frames, held-out
+        # cameras, inside the mask)
+        record["predictor_recovery"] = (zero - mean) / (enc - mean)
+        record["mean_latent_psnr_fg"] = mean
+        nohist = by_label.get("Ours, no history: N_b = 1, no velocities (zero init)", {}).get("psnr_fg")
+        if nohist is not None:
+            record["predictor_recovery_no_history"] = (nohist - mean) / (enc - mean)
+    capture = _capture_of(runs / "run_ours") if (runs / "run_ours" / "config.json").exists() else None
+    fair = capture / "gt" / "fairness.json" if capture is not None else None
+    if fair is not None and fair.exists():
+        f = json.loads(fair.read_text())
+        record["history_fairness"] = {"pose_only": f["pose_only"], "history": f["history"]}
+    lines += _summary_lines(record, mean)
     return lines, record
+
+
+def _capture_of(run: Path) -> Path:
+    ds = json.loads((run / "config.json").read_text())["train"]["dataset"]
+    return Path(json.loads((Path(ds) / "dataset.json").read_text())["capture"])
+
+
+def _summary_lines(record: dict, mean: float | None) -> list[str]:
+    out = []
+    if mean is not None:
+        out += ["", f"Training-mean latent on the same frames and cameras (`avatar-train eval`): PSNR (mask) {mean:.2f}."]
+    if "predictor_recovery" in record:
+        out.append(f"Predictor recovery (zero init, no texture: its gain over the training-mean latent / the encoder's): "
+                   f"{record['predictor_recovery']:.0%}"
+                   + (f"; without history {record['predictor_recovery_no_history']:.0%}."
+                      if "predictor_recovery_no_history" in record else "."))
+    if "history_fairness" in record:
+        f = record["history_fairness"]
+        out.append(f"History fairness of the capture (R^2 of the appearance states on test frames, docs/synth.md): "
+                   f"current pose {f['pose_only']:.2f}, last 10 poses {f['history']:.2f}.")
+    return out
 
 
 def main() -> None:

@@ -28,14 +28,21 @@ train() {  # train NAME [avatar-train flags...]: one run, resumed if it exists
 }
 train run_ours
 .venv/bin/avatar-train turntable --run "$OUT/run_ours" --out "$OUT/run_ours/turntable.mp4"
-.venv/bin/avatar-train predictor --run "$OUT/run_ours" --steps 200 --window 8 --model.latent-pca-components 16
+# CPU recipe of the predictor (docs/train.md "The appearance predictor on history-caused appearance"): one global
+# latent PCA of 8 components as the output clamp; zero context = the training-mean latent (the default)
+PRED_FLAGS="--steps 200 --window 8 --model.latent-pca global --model.latent-pca-components 8"
+.venv/bin/avatar-train predictor --run "$OUT/run_ours" $PRED_FLAGS
 .venv/bin/avatar-drive --run "$OUT/run_ours" --motion "$OUT/capture" --split test --mode predictor_encoder_init \
     --out "$OUT/drive_test"
 .venv/bin/avatar-drive --run "$OUT/run_ours" --motion "$OUT/capture" --split test --mode encoder \
     --out "$OUT/drive_test_encoder"
 .venv/bin/python -m gsavatar.drive.compare --run "$OUT/run_ours" --out "$OUT/latent_sources.png" \
     --drive encoder="$OUT/drive_test_encoder" predictor="$OUT/drive_test"
+.venv/bin/python -m gsavatar.drive.latent_plot --run "$OUT/run_ours" --out "$OUT/latent_states.png"
 if [ "$STUDY" = 1 ]; then
+    # no-history ablation of the predictor: the current pose only (N_b = 1, no velocities / accelerations)
+    .venv/bin/avatar-train predictor --run "$OUT/run_ours" --out "$OUT/run_ours/predictor_nohist" $PRED_FLAGS \
+        --model.history 1 --model.no-velocities
     train run_oracle --texture-source gt
     train run_mmlps --variant mmlps_dagger
     train run_nrfgca --variant nrfgca_dagger
@@ -55,6 +62,7 @@ echo "Trained avatar + metrics:         $OUT/run_ours/checkpoints/latest.pt, $OU
 echo "Turntable video:                  $OUT/run_ours/turntable.mp4"
 echo "Driven test sequence (predictor): $OUT/drive_test/drive.mp4, metrics.json, stability.png"
 echo "Latent sources on one test frame: $OUT/latent_sources.png (ground truth | encoder | predictor | mean latent)"
+echo "Appearance over the test frames:  $OUT/latent_states.png (true states; PC1 of encoder / predictor latents)"
 [ "$STUDY" = 1 ] && echo "Results table (all rows):         $OUT/results.md, results.json  (drives in $OUT/drive/)"
 echo
 echo "Watch it live in a browser (127.0.0.1, Ctrl-C to stop):"

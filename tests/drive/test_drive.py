@@ -7,6 +7,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import shutil
+
 import numpy as np
 import pytest
 import torch
@@ -406,3 +408,31 @@ def test_compare_figure_renders_each_latent_source(loaded, tiny_run, tiny_captur
     if not torch.cuda.is_available():  # compare loads the run on CUDA when it can: another rasterizer there
         assert info["psnr_fg"]["encoder"] == pytest.approx(want, abs=1e-6)  # the driver's render of those latents
     assert np.isfinite(info["psnr_fg"]["encoder"])
+
+
+def test_latent_plot_shows_encoder_and_predictor_latents(tiny_run, tmp_path):
+    """The demo's appearance-over-time figure: PC1 of encoder / predictor / mean latents; refuses a user's file."""
+    from gsavatar.drive.latent_plot import LatentPlotArgs, write_latent_plot
+    from gsavatar.train.cli import main as train_main
+    from gsavatar.utils.errors import SchemaError
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    assert train_main(["predictor", "--run", str(run), "--steps", "2", "--window", "2", "--batch-size", "2",
+                       "--model.history", "3", "--model.width", "16", "--model.heads", "2", "--model.ff", "32",
+                       "--model.latent-pca", "global", "--model.latent-pca-components", "4"]) == 0
+    out = tmp_path / "fig" / "states.png"
+    res = write_latent_plot(LatentPlotArgs(run=run, out=out))
+    assert out.exists() and out.with_suffix(".json").exists()
+    assert set(res["pc1"]) == {"encoder", "predictor (zero init)", "predictor (encoder init)", "training mean"}
+    T = len(res["frames"])
+    assert T >= 2 and all(len(v) == T for v in res["pc1"].values())
+    assert res["sources"]["encoder"]["l1_to_encoder"] == 0.0
+    # encoder init: its first frame is the encoder's own latent
+    assert res["pc1"]["predictor (encoder init)"][0] == pytest.approx(res["pc1"]["encoder"][0], abs=1e-4)
+    write_latent_plot(LatentPlotArgs(run=run, out=out))  # its own figure: replaced
+    mine = tmp_path / "mine.png"
+    mine.write_bytes(b"a user's picture")
+    with pytest.raises(SchemaError, match="not a gsavatar figure"):
+        write_latent_plot(LatentPlotArgs(run=run, out=mine))
+    assert mine.read_bytes() == b"a user's picture"

@@ -37,6 +37,7 @@ import tyro
 
 from gsavatar.data_schema.views import UndistortMaps
 from gsavatar.drive.driver import DriveConfig, Driver, load_predictor_for, texture_source
+from gsavatar.runs.load import predictor_from_checkpoint
 from gsavatar.metrics.lpips import LPIPSMode, load_lpips
 from gsavatar.utils.cli import run_reporting_errors
 from gsavatar.utils.io import atomic_path, atomic_save_npz, atomic_write_json, write_image
@@ -55,6 +56,9 @@ class DriveArgs(DriveConfig):
     SMPL-X .npz (poses [F,165], trans, mocap_frame_rate; SMPL-X rigs)."""
     out: Path | None = None
     """Output directory (required unless --view or --export-ply)."""
+    predictor: Path | None = None
+    """Appearance predictor checkpoint to drive with instead of RUN/predictor/latest.pt (e.g. an ablation trained
+    with ``avatar-train predictor --out DIR``: DIR/latest.pt)."""
     motion_fps: float = 0.0
     """Frame rate of an npz motion (0: from an 'fps' array, a sidecar <name>.json or a capture.json beside it)."""
     joint_map: Path | None = None
@@ -133,6 +137,10 @@ def drive(args: DriveArgs) -> dict:
     loaded = load_run(args.run, cfg.device)
     # the ramp-up drives the predictor modes too, whatever this drive's mode needs
     predictor = load_predictor_for(args.run) if args.ramp_up and loaded.net.avatar.latent_in else "auto"
+    if args.predictor is not None:
+        if not Path(args.predictor).is_file():
+            raise FileNotFoundError(f"--predictor {args.predictor}: no such checkpoint file")
+        predictor = predictor_from_checkpoint(Path(args.predictor))
     d = Driver(args.run, cfg, loaded=loaded, predictor=predictor)
     scene = d.scene
     with warnings.catch_warnings(record=True) as caught:  # e.g. rig joints no BVH joint drives: one line each

@@ -1,0 +1,95 @@
+"""PSNR inside the mask of predictor variants on a run's test frames, without a full drive per variant.
+
+    PYTHONPATH=src OMP_NUM_THREADS=1 .venv/bin/python benchmarks/predictor_psnr.py --run out/demo/run_ours \
+        --predictors base=out/demo/run_ours/predictor/latest.pt abs=out/demo/run_ours/pred_exp/e3/latest.pt \
+        --every 3 --json docs/benchmarks/predictor_variants_small.json
+
+Rolls every predictor out over the whole test segment (latents only: zero init, and encoder init = the
+encoder's latents of the first test frame, then free-running) and renders every ``--every``-th test frame
+from every held-out camera with those latents, the encoder's and the training-mean latent. Prints one JSON
+line per source: PSNR inside the mask (pooled squared error over the rendered views), the recovery
+(gain over the mean latent / the encoder's) and the L1 to the encoder latents over all test frames. The
+numbers are the drive's (same renderer, cameras and masks); ``avatar-drive`` renders every frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--run", type=Path, required=True)
+    ap.add_argument("--predictors", nargs="+", default=[], help="LABEL=CHECKPOINT")
+    ap.add_argument("--every", type=int, default=3)
+    ap.add_argument("--image-scale", type=float, default=1.0)
+    ap.add_argument("--json", type=Path, default=None)
+    a = ap.parse_args()
+    torch.set_num_threads(1)
+
+    from gsavatar.drive.driver import DriveConfig, Driver, motion_inputs
+    from gsavatar.drive.metrics import load_ground_truth
+    from gsavatar.drive.motion import load_driving_motion
+    from gsavatar.runs.latents import mean_train_latent
+    from gsavatar.runs.load import load_run, predictor_from_checkpoint
+    from gsavatar.train.predictor import extract_targets
+
+    loaded = load_run(a.run)
+    net, scene = loaded.net, loaded.scene
+    cap = scene.capture
+    cams = list(cap.splits["test"].cameras)
+    d = Driver(a.run, DriveConfig(mode="encoder", capture_cameras=tuple(cams), image_scale=a.image_scale),
+               loaded=loaded, predictor=None)
+    d.use_capture_cameras(cap)
+    motion = load_driving_motion(cap.root, cap.rig, d.fps, split="test")
+    frames = list(motion.gt.frames)
+    T = len(frames)
+    targets = extract_targets(a.run, loaded=loaded)
+    row = {int(f): i for i, f in enumerate(targets.frames)}
+    enc = torch.as_tensor(targets.latents[[row[int(f)] for f in frames]])  # [T, A, L]
+    P, R, Tr = (torch.as_tensor(np.asarray(x)[frames], dtype=torch.float32)
+                for x in (cap.motion.pose, cap.motion.root_rotation, cap.motion.root_translation))
+    sources = {"encoder": enc, "mean latent": mean_train_latent(net, scene, d.device, loaded.config.texture_source)
+               .cpu().expand_as(enc)}
+    for spec in a.predictors:
+        label, _, path = spec.partition("=")
+        m = predictor_from_checkpoint(Path(path))
+        with torch.no_grad():
+            sources[f"{label} zero init"] = m.rollout(P, R, Tr, m.zero_latents())
+            sources[f"{label} encoder init"] = m.rollout(P, R, Tr, enc[0], first_is_given=True)
+    picks = list(range(0, T, a.every))
+    sse = {k: 0.0 for k in sources}
+    npx = 0
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        for t in picks:
+            x = d.check_inputs(motion_inputs(motion, t))
+            gts = load_ground_truth(cap, frames[t], cams, a.image_scale, d.bg.cpu())
+            for k, lat in sources.items():
+                imgs = d.render(x, lat[t].to(d.device))[0]
+                for c in cams:
+                    gi, gm = gts[c]
+                    m = gm > 0.5
+                    sse[k] += float(((imgs[c].cpu() - gi) ** 2)[m].sum())
+            npx += sum(int((gts[c][1] > 0.5).sum()) * 3 for c in cams)
+    psnr = {k: float(10 * np.log10(1.0 / max(v / max(npx, 1), 1e-12))) for k, v in sse.items()}
+    gain = psnr["encoder"] - psnr["mean latent"]
+    out = {"run": str(a.run), "test_frames": T, "rendered_frames": len(picks), "cameras": cams,
+           "seconds": time.perf_counter() - t0, "sources": {}}
+    for k in sources:
+        out["sources"][k] = {"psnr_fg": psnr[k], "recovery": (psnr[k] - psnr["mean latent"]) / gain if gain > 0 else None,
+                             "l1_to_encoder": float((sources[k] - enc).abs().mean())}
+        print(json.dumps({"source": k, **out["sources"][k]}))
+    if a.json:
+        a.json.parent.mkdir(parents=True, exist_ok=True)
+        a.json.write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
