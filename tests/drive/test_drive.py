@@ -5,9 +5,8 @@ the latent-source comparison figure, and bad inputs (exit code 2, message names 
 from __future__ import annotations
 
 import json
-from pathlib import Path
-
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
