@@ -35,7 +35,7 @@ import numpy as np
 
 from gsavatar.data_schema.rig import Rig
 from gsavatar.data_schema.template import Template
-from gsavatar.synth.motion_effects import MotionEffect, apply_effect, effect_level, joint_signal
+from gsavatar.synth.motion_effects import MotionEffect, apply_effect, effect_level, hue_rotation, joint_signal
 
 
 @dataclass(frozen=True)
@@ -219,13 +219,6 @@ def _markov_chain(rng: np.random.Generator, n: int, k: int, p_switch: float) -> 
             cur = (cur + int(jump[i])) % k
         s[i] = cur
     return s
-
-
-def hue_rotation(angle: float) -> np.ndarray:
-    """3x3 RGB rotation about the grey axis (hue shift that keeps the grey level). -> [3, 3]"""
-    a = np.ones(3) / np.sqrt(3.0)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return (np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K).astype(np.float32)
 
 
 _SKIN = np.array([[0.87, 0.70, 0.58], [0.78, 0.58, 0.45], [0.62, 0.44, 0.32], [0.45, 0.31, 0.22], [0.93, 0.78, 0.68]])

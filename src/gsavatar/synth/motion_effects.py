@@ -208,7 +208,8 @@ def effect_level(effect: MotionEffect, u: np.ndarray, fps: float) -> tuple[np.nd
 
 
 # --------------------------------------------------------------------------- texture
-def _hue_rotation(angle: float) -> np.ndarray:
+def hue_rotation(angle: float) -> np.ndarray:
+    """3x3 RGB rotation about the grey axis (hue shift that keeps the grey level). -> [3, 3]"""
     a = np.ones(3) / np.sqrt(3.0)
     K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
     return (np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K).astype(np.float32)
@@ -223,7 +224,7 @@ def apply_effect(flat: np.ndarray, idx: np.ndarray, weight: np.ndarray, y: np.nd
     if effect.effect == "darken":
         flat[idx] *= 1 - effect.strength * abs(level) * weight
     elif effect.effect == "tint":
-        M = _hue_rotation(effect.strength * level)
+        M = hue_rotation(effect.strength * level)
         c = flat[idx]
         flat[idx] = c + weight * (c @ M.T - c)
     elif effect.effect == "dye":
