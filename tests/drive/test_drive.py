@@ -259,7 +259,7 @@ def test_drive_modes_come_from_one_table(loaded, tiny_run):
 
     from gsavatar.drive.cli import DriveArgs
 
-    modes = ("predictor", "pose_init", "predictor_encoder_init", "reinit", "encoder")
+    modes = ("predictor", "pose_init", "predictor_encoder_init", "reinit", "train_mean", "encoder")
     assert tuple(LATENT_SOURCES) == modes and typing.get_args(DriveMode) == modes
     assert typing.get_type_hints(DriveArgs)["mode"] == DriveMode  # the CLI's --mode choices
     assert ramp_up_modes() == ("predictor", "pose_init", "predictor_encoder_init", "encoder")
@@ -267,12 +267,16 @@ def test_drive_modes_come_from_one_table(loaded, tiny_run):
         DriveConfig(mode="nope")
     needs = {m: (c.needs_texture, c.needs_predictor) for m, c in LATENT_SOURCES.items()}
     assert needs == {"predictor": (False, True), "pose_init": (False, True), "predictor_encoder_init": (True, True),
-                     "reinit": (True, True), "encoder": (True, False)}
+                     "reinit": (True, True), "train_mean": (False, True), "encoder": (True, False)}
     pred = small_predictor(loaded.net)
     d = Driver(tiny_run, DriveConfig(mode="reinit", reinit_every=3), loaded=loaded, predictor=pred)
     assert [d.texture_needed_at(t) for t in range(7)] == [True, False, False, True, False, False, True]
     assert [d.with_mode("predictor_encoder_init").texture_needed_at(t) for t in range(3)] == [True, False, False]
     assert not d.with_mode("predictor").needs_textures
+    m = d.with_mode("train_mean")  # the predictor's training-mean latent, every frame, no texture
+    m.start(FrameInputs(np.zeros(d.pose_dim), np.zeros(3), np.zeros(3)))
+    assert torch.equal(m.step(FrameInputs(np.zeros(d.pose_dim), np.zeros(3), np.zeros(3)), render=False).latents,
+                       pred.latent_mean)
     e = d.with_mode("encoder")  # a plain constructor call sharing the run and predictor
     assert e.net is d.net and e.predictor is d.predictor and e.config.reinit_every == 3 and e.t == -1
     with pytest.raises(ValueError, match="trained InitialLatentNet"):

@@ -215,6 +215,8 @@ class LiveGaussians:
             return [driver.config.mode]
         out = []
         for name, cls in LATENT_SOURCES.items():
+            if not cls.in_viewer:
+                continue
             if cls.needs_predictor and driver.predictor is None:
                 continue
             if cls.needs_texture and driver.net.encoder is None:

@@ -83,6 +83,8 @@ class LatentSource:
     """Steps the run's trained appearance predictor."""
     ramp_up: ClassVar[bool] = False
     """One of the initialisations the ramp-up study (``--ramp-up``) compares by default."""
+    in_viewer: ClassVar[bool] = True
+    """Offered in the live viewer's latent menu."""
     matches_encoder: ClassVar[bool] = False
     """Its latents are the encoder's of every frame, the ramp-up's target (latent error 0 by construction)."""
 
@@ -208,6 +210,17 @@ class Reinit(EncoderInit, mode="reinit"):
         if t > 0 and self.texture_needed_at(t):
             self.state = self.state._replace(latents=self.ctx.encode(x.texture).to(self.state.latents))
         return super().next(x, t)
+
+
+class TrainMean(LatentSource, mode="train_mean"):
+    """The training frames' mean latent every frame, as the run's predictor stores it (what an avatar without
+    appearance dynamics shows; the baseline the predictor's recovery is measured against). No texture."""
+
+    needs_predictor = True
+    in_viewer = False  # the viewer has its own mean latent (the encoder's, without a predictor)
+
+    def next(self, x: FrameInputs, t: int) -> Tensor:
+        return self.ctx.predictor.latent_mean.to(self.ctx.device)
 
 
 class Encoder(LatentSource, mode="encoder"):
