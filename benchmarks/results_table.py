@@ -264,8 +264,11 @@ def main() -> None:
              f"Machine: {platform.system()} {platform.machine()}, CPU only, torch {torch.__version__}; training threads "
              f"as in each run's `timing.json` (the 2-core box was shared by two trainings at a time, so steps/s are "
              f"comparable only within a table).", ""]
+    import subprocess
+
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip() or None
     record = {"machine": {"system": platform.system(), "machine": platform.machine(), "torch": torch.__version__,
-                          "device": "cpu"}, "captures": {}}
+                          "device": "cpu"}, "commit": commit, "captures": {}}
     for label, runs in caps:
         cl, cr = capture_tables(label, runs, a.image_scale, a.params)
         lines += cl + [""]
