@@ -59,8 +59,7 @@ def drive_row(run: Path, mode: str, out: Path, image_scale: float, predictor: st
         row = json.loads(cached.read_text())
         if row.get("image_scale") == image_scale:
             return row
-    cap = json.loads((run / "config.json").read_text())["train"]["dataset"]
-    capture = json.loads((Path(cap) / "dataset.json").read_text())["capture"]
+    capture = str(_capture_of(run))
     t = time.perf_counter()
     extra = []
     if mode.startswith("reinit") and mode != "reinit":  # reinitK: encoder every K frames

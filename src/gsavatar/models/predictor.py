@@ -120,6 +120,11 @@ class PredictorConfig:
         return config_to_json(self)
 
 
+LEGACY_CONFIG = {"residual": False, "zero_context": "raw"}
+"""What a saved predictor config that lacks these fields was trained with: absolute outputs (before
+``residual``), raw-zero context (before ``zero_context``). Checkpoint readers fill missing fields from it."""
+
+
 class RolloutState(NamedTuple):
     """Streaming state: the last N_b driving frames (oldest first) and the previous latents."""
 

@@ -16,7 +16,7 @@ from gsavatar.data_schema.dataset import dataset_fingerprint
 from gsavatar.data_schema.prepared import PreparedScene, load_scene
 from gsavatar.models.config import ModelConfig
 from gsavatar.models.net import AvatarNet, build_net
-from gsavatar.models.predictor import AppearancePredictor, PredictorConfig
+from gsavatar.models.predictor import LEGACY_CONFIG, AppearancePredictor, PredictorConfig
 from gsavatar.runs.checkpoint import check_same_dataset, load_checkpoint
 from gsavatar.runs.config import TrainConfig, check_train_config, from_json, model_config, model_config_from_json, resolve
 from gsavatar.utils.errors import SchemaError
@@ -83,9 +83,7 @@ def predictor_from_checkpoint(path: Path, device: str | torch.device = "cpu") ->
     """Rebuild a trained predictor from its checkpoint alone (slots and pose PCA are buffers)."""
     state = load_checkpoint(path)
     sd = state["modules"]["predictor"]
-    # checkpoints written before ``residual`` existed predicted ``mean + scale * head``; before ``zero_context``
-    # their zero-init started from the zero vector
-    cfg = PredictorConfig(**{"residual": False, "zero_context": "raw", **state["config"]["model"]})
+    cfg = PredictorConfig(**{**LEGACY_CONFIG, **state["config"]["model"]})  # fields older checkpoints lack
     pca = (sd["pose_pca_mean"], sd["pose_pca_basis"], sd["pose_pca_limit"]) if "pose_pca_basis" in sd else None
     m = AppearancePredictor(cfg, sd["latent_mean"].shape[0], sd["pose_slots"], int(state["config"]["pose_dim"]), pca)
     m.load_state_dict(sd)

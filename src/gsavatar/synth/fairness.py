@@ -6,11 +6,12 @@ cross-validation over contiguous blocks of the training frames) is fit twice on 
 - ``pose_only``: features of the current frame ``t`` alone;
 - ``history``: the same features of frames ``t-N+1..t`` stacked (clamped at the sequence start).
 
-Predictions are clipped to the training range of each state. Both are scored on the test frames by R^2 pooled over the (standardised) states:
-``1 - sum SSE / sum SST``, SST around the test frames' own mean. A capture whose appearance the motion
-history causes has ``history`` clearly above ``pose_only``; one whose appearance is random in time has
-both near or below 0. Per frame the features are the joint-local pose parameters and the root height
-(heading and position in the room carry no appearance).
+Each state gets its own regularisation, predictions are clipped to the training range of each state, and
+both are scored on the test frames by R^2 pooled over the (standardised) states: ``1 - sum SSE / sum SST``,
+SST around the test frames' own mean. A capture whose appearance the motion history causes has ``history``
+clearly above ``pose_only``; one whose appearance is random in time has both near or below 0. Per frame the
+features are the joint-local pose parameters and the joints' root-relative positions in the heading frame
+(reduced by PCA), plus the root height as it is (heading and position in the room carry no appearance).
 """
 
 from __future__ import annotations
@@ -148,19 +149,15 @@ def capture_fairness(capture) -> dict:
     """:func:`history_fairness` of a written synthetic capture (``gt/motion_states.npz``, motion, rig, splits)."""
     from pathlib import Path
 
-    import torch
-
     from gsavatar.data_schema import load_capture
-    from gsavatar.geometry.lbs import pose_joints
+    from gsavatar.synth.render import pose_joint_positions
     from gsavatar.utils.io import read_npz
 
     capture = Path(capture)
     cap = load_capture(capture)
     z = read_npz(capture / "gt" / "motion_states.npz", keys=("levels",))
     m = cap.motion
-    with torch.no_grad():
-        joints = pose_joints(cap.rig, *(torch.as_tensor(np.asarray(a), dtype=torch.float64)
-                                        for a in (m.pose, m.root_rotation, m.root_translation))).numpy()
+    joints = pose_joint_positions(cap.rig, m.pose, m.root_rotation, m.root_translation)
     return history_fairness(m, z["levels"], np.asarray(cap.splits["train"].frames),
                             np.asarray(cap.splits["test"].frames), joints=joints)
 

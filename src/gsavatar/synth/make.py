@@ -45,8 +45,8 @@ from gsavatar.synth.appearance import AppearanceModel
 from gsavatar.synth.cameras import camera_kind, make_dome, special_cameras
 from gsavatar.synth.fairness import history_fairness
 from gsavatar.synth.presets import SynthConfig
-from gsavatar.synth.render import (FrameScene, Shading, TriMesh, box_mesh, pose_vertices, render_view,
-                                   supersampled_rays, texel_visibility)
+from gsavatar.synth.render import (FrameScene, Shading, TriMesh, box_mesh, pose_joint_positions, pose_vertices,
+                                   render_view, supersampled_rays, texel_visibility)
 from gsavatar.utils.io import atomic_save_npz, atomic_write_json, write_image
 
 GT_FORMAT = "gsavatar-synth-gt"
@@ -234,15 +234,8 @@ def make_capture(cfg: SynthConfig, out_dir: str | Path, anny_cache_dir: str | Pa
     splits = default_splits(cfg, cameras)
     train = np.asarray(splits["train"].frames)
     slot, pname = coupling_slot(rig, motion.pose, train, cfg.coupled_param)
-    joints = None
-    if cfg.appearance.motion_effects:
-        import torch
-
-        from gsavatar.geometry.lbs import pose_joints
-
-        with torch.no_grad():
-            joints = pose_joints(rig, *(torch.as_tensor(np.asarray(a), dtype=torch.float64) for a in
-                                       (motion.pose, motion.root_rotation, motion.root_translation))).numpy()
+    joints = (pose_joint_positions(rig, motion.pose, motion.root_rotation, motion.root_translation)
+              if cfg.appearance.motion_effects else None)
     app = AppearanceModel(template, F, train_frames=train, coupling_signal=motion.pose[:, slot], rig=rig,
                           seed=cfg.seed, tex_size=cfg.tex_size, fps=cfg.fps, config=cfg.appearance,
                           joint_positions=joints, joint_names=[j.name for j in rig.joints])
@@ -262,14 +255,13 @@ def make_capture(cfg: SynthConfig, out_dir: str | Path, anny_cache_dir: str | Pa
     atomic_save_npz(gt / "regions.npz", covered=app.uv.covered.astype(np.uint8) * 255,
                     **{k: np.rint(np.clip(v, 0, 1) * 255).astype(np.uint8) for k, v in app.regions.items()})
 
-    fairness = None
     if app.motion_levels:
         names = list(app.motion_levels)
         levels = np.stack([app.motion_levels[k] for k in names], 1).astype(np.float32)  # [F, E]
         signals = np.stack([app.motion_signals[k] for k in names], 1).astype(np.float32)
         atomic_save_npz(gt / "motion_states.npz", names=np.array(names), levels=levels, signals=signals)
-        fairness = history_fairness(motion, levels, train, np.asarray(splits["test"].frames), joints=joints)
-        atomic_write_json(gt / "fairness.json", fairness)
+        atomic_write_json(gt / "fairness.json",
+                          history_fairness(motion, levels, train, np.asarray(splits["test"].frames), joints=joints))
 
     job = _RenderJob(out, template.faces, template.corner_uvs, verts, cameras, app, cfg.supersample,
                      Shading() if cfg.shading else None, tuple(cfg.background), occluders, cfg.corrupted_camera,

@@ -104,6 +104,19 @@ def pose_vertices(template: Template, rig: Rig, pose: np.ndarray, root_rotation:
     return np.concatenate(out, 0).astype(np.float32)
 
 
+def pose_joint_positions(rig: Rig, pose: np.ndarray, root_rotation: np.ndarray,
+                         root_translation: np.ndarray) -> np.ndarray:
+    """Posed world joint positions by forward kinematics (float64 inside). pose [F, P] rad, root_rotation [F, 3]
+    axis-angle, root_translation [F, 3] m -> [F, J, 3] float64, metres."""
+    import torch
+
+    from gsavatar.geometry.lbs import pose_joints
+
+    with torch.no_grad():
+        return pose_joints(rig, *(torch.as_tensor(np.asarray(a), dtype=torch.float64)
+                                  for a in (pose, root_rotation, root_translation))).numpy()
+
+
 def supersampled_rays(cam: Camera, supersample: int = 1) -> np.ndarray:
     """World rays (origin, unit dir) through the ``s x s`` sub-pixel centres of every pixel.
 

@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from gsavatar.data_schema.prepared import ProjectedTextures
-from gsavatar.models.predictor import AppearancePredictor, PredictorConfig
+from gsavatar.models.predictor import LEGACY_CONFIG, AppearancePredictor, PredictorConfig
 from gsavatar.runs.checkpoint import load_checkpoint, resume_hint, save_checkpoint
 from gsavatar.runs.load import LoadedRun, load_run
 from gsavatar.train.sampler import step_generator
@@ -342,8 +342,7 @@ class PredictorTrainer:
         if self.ckpt.exists():
             state = load_checkpoint(self.ckpt, self.config, strict_config_keys=(
                 "model", "num_anchors", "pose_dim", "targets_step", "train.seed", "train.batch_size", "train.window"),
-                defaults={"model": {**dataclass_defaults(PredictorConfig), "residual": False, "zero_context": "raw"}})
-            # older checkpoints: absolute outputs (pre-``residual``), raw zero context (pre-``zero_context``)
+                defaults={"model": {**dataclass_defaults(PredictorConfig), **LEGACY_CONFIG}})
             model.load_state_dict(state["modules"]["predictor"])
             self.optim.load_state_dict(state["optimizer"])
             self.step = int(state["step"])

@@ -197,15 +197,16 @@ def claim_output_file(path: str | Path, kind: FileKind, force: bool = False, for
                                  f"{p.suffix or 'no extension'!r}")
     if p.is_dir():
         raise IsADirectoryError(f"{p}: is a directory; name the {kind} file to write")
+    ours = False
     if p.exists() or p.is_symlink():
         if not p.is_file() or p.is_symlink():
             raise SchemaError(p, "", "exists and is not a regular file (a link, FIFO or device); choose another name")
-        if not force and not is_our_file(p, kind):
+        ours = is_our_file(p, kind)  # hashes the file once
+        if not force and not ours:
             raise SchemaError(p, "", f"exists and is not a gsavatar {kind} output; choose another name, or pass "
                                      f"{force_flag} to replace it")
-    ours = is_our_file(p, kind)
     for c in map(Path, companions):
-        if (c.exists() or c.is_symlink()) and not (force or ours) or (c.is_symlink() or c.is_dir()):
+        if c.is_symlink() or c.is_dir() or (c.exists() and not (force or ours)):
             raise SchemaError(c, "", f"exists and was not written with {p.name} by gsavatar; choose another name for "
                                      f"{p.name}, or pass {force_flag} to replace both")
     return p
