@@ -29,7 +29,6 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
-from typing import Literal
 
 import numpy as np
 import torch
@@ -39,6 +38,7 @@ from gsavatar.data_schema.views import UndistortMaps
 from gsavatar.drive.driver import DriveConfig, Driver, load_predictor_for, texture_source
 from gsavatar.runs.load import predictor_from_checkpoint
 from gsavatar.metrics.lpips import LPIPSMode, load_lpips
+from gsavatar.metrics.protocols import PROTOCOLS, load_ag_lpips
 from gsavatar.utils.cli import run_reporting_errors
 from gsavatar.utils.io import atomic_path, atomic_save_npz, atomic_write_json, write_image
 from gsavatar.utils.outdir import claim_output_dir
@@ -76,6 +76,10 @@ class DriveArgs(DriveConfig):
     """Write every render as frames/{cam}/{t:06d}.png."""
     lpips: LPIPSMode = "auto"
     """LPIPS metric: ``auto`` uses it when its weights load, ``on`` requires it, ``off`` skips it."""
+    ag_lpips: Literal["auto", "on", "off"] = "auto"
+    """LPIPS (VGG and Alex) of the field's ``ag`` protocol: ``auto`` = on CUDA only (5-15 s per view on a CPU)."""
+    ag_lpips_every: int = 10
+    """The ``ag`` protocol's LPIPS on every N-th frame (its PSNR and SSIM on every frame)."""
     ramp_up: int = 0
     """Also measure the first N frames after zero / pose / encoder initialisation (needs ground truth + textures)."""
     force: bool = False
@@ -164,7 +168,8 @@ def drive(args: DriveArgs) -> dict:
         check_images(gt.capture, sorted(set(gt.frames)), [v.name for v in d.views])
     textures = texture_source(motion, scene, cfg.textures) if d.needs_textures else None
     lp, lp_name = load_lpips(args.lpips, d.device, fallback=True) if gt is not None else (None, "off")
-    acc = SequenceMetrics(lp)
+    ag_nets, ag_names = load_ag_lpips(d.device, args.ag_lpips if gt is not None and args.lpips != "off" else "off")
+    acc = SequenceMetrics(lp, d.bg, ag_nets, args.ag_lpips_every)
     maps = UndistortMaps()  # undistortion tables of the ground-truth cameras, built once for the sequence
     out = claim_output_dir(Path(args.out), "drive", args.force, register=True)
     cams = [v.name for v in d.views]
@@ -209,7 +214,8 @@ def drive(args: DriveArgs) -> dict:
     }
     if gt is not None:
         fig = acc.write_figure(out / "stability.png")
-        metrics = {"mode": cfg.mode, "lpips_net": lp_name, "gt_frames": gt.frames, **summary,
+        metrics = {"mode": cfg.mode, "lpips_net": lp_name, "protocols": dict(PROTOCOLS), "ag_lpips_nets": ag_names,
+                   "ag_lpips_every": args.ag_lpips_every, "gt_frames": gt.frames, **summary,
                    "stability_figure": None if fig is None else fig.name}
         atomic_write_json(out / "metrics.json", _json_safe(metrics))
         info["metrics"] = summary["mean"]

@@ -28,6 +28,7 @@ from torch import Tensor
 from gsavatar.data_schema.views import UndistortMaps, load_view, scaled_camera
 from gsavatar.drive.driver import motion_inputs
 from gsavatar.drive.sources import ramp_up_modes, source_class
+from gsavatar.metrics.protocols import ag_scores, on_white
 from gsavatar.utils.io import atomic_write_json, write_image
 
 _COLORS = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75)]  # RGB
@@ -176,8 +177,13 @@ def load_ground_truth(capture, frame: int, cameras: list[str], image_scale: floa
 class SequenceMetrics:
     """Streaming accumulator: :meth:`add` each (frame, camera) in frame order, then :meth:`summary`."""
 
-    def __init__(self, lpips=None) -> None:
+    def __init__(self, lpips=None, background: Tensor | None = None, ag_lpips: dict | None = None,
+                 ag_lpips_every: int = 10) -> None:
+        """``background`` [3]: what renders and ground truth are composited on (for the ``ag`` protocol's white;
+        None: black); ``ag_lpips``: its LPIPS nets, scored on frames ``t % ag_lpips_every == 0``."""
         self.lpips = lpips
+        self.background = torch.zeros(3) if background is None else background.detach().float().cpu()
+        self.ag_lpips, self.ag_lpips_every = ag_lpips or {}, max(int(ag_lpips_every), 1)
         self.rows: list[dict] = []
         self._prev: dict[str, tuple] = {}
         self.worst: dict | None = None
@@ -189,6 +195,11 @@ class SequenceMetrics:
         region = (mask > 0.5) if mask is not None else (alpha > 0.5)
         if gt is not None:
             row |= image_scores(chw(pred), chw(gt), mask[None], self.lpips)
+            bg = self.background.to(pred)
+            nets = self.ag_lpips if t % self.ag_lpips_every == 0 else None
+            ag = ag_scores(on_white(chw(pred), alpha[None], bg).clamp(0, 1), on_white(chw(gt), mask[None].to(gt), bg),
+                           mask[None], nets)
+            row |= {f"ag_{k}": v for k, v in ag.items()}
         prev = self._prev.get(cam)
         if prev is not None and prev[0] == t - 1:
             _, p0, g0, r0 = prev
@@ -205,7 +216,8 @@ class SequenceMetrics:
         return row
 
     def summary(self) -> dict:
-        keys = [k for k in ("psnr", "psnr_fg", "ssim", "lpips", "temporal_error", "render_change")
+        keys = [k for k in ("psnr", "psnr_fg", "ssim", "lpips", "temporal_error", "render_change", "ag_psnr", "ag_ssim",
+                            "ag_lpips_vgg", "ag_lpips_alex")
                 if any(k in r for r in self.rows)]
         cams = sorted({r["camera"] for r in self.rows})
         per_cam = {c: {k: _nanmean([r.get(k) for r in self.rows if r["camera"] == c]) for k in keys} for c in cams}

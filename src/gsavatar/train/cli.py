@@ -52,13 +52,15 @@ class Eval:
     """Run directory written by ``avatar-train avatar``."""
     eval_frames: int = 8
     """Frames per split (evenly spaced)."""
+    ag_lpips: Literal["auto", "on", "off"] = "auto"
+    """LPIPS (VGG and Alex) of the field's ``ag`` protocol: ``auto`` = on CUDA only (5-15 s per view on a CPU)."""
 
     def run_(self) -> None:
         from gsavatar.train.runs import evaluate_run
         from gsavatar.utils.paths import add_output_root
 
         add_output_root(self.run)  # eval images and metrics stay in the run
-        print(json.dumps(evaluate_run(self.run, self.eval_frames), indent=1))
+        print(json.dumps(evaluate_run(self.run, self.eval_frames, ag_lpips=self.ag_lpips), indent=1))
 
 
 @dataclass

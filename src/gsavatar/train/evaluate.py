@@ -25,13 +25,17 @@ def select_frames(frames: list[int], n: int) -> list[int]:
 
 @torch.no_grad()
 def evaluate_views(net: AvatarNet, data: ViewDataset, device: torch.device, sh_degree: int, backend: str = "auto",
-                   lpips=None, latents_fn=None, save_dir: Path | None = None, max_images: int = 4) -> dict:
+                   lpips=None, latents_fn=None, save_dir: Path | None = None, max_images: int = 4,
+                   ag_lpips: dict | None = None) -> dict:
     """Render every (frame, camera) of ``data`` on a black background and score it.
 
     ``latents_fn(frame) -> [A, L]`` overrides the encoder (e.g. the appearance predictor).
     Returns the means of: ``psnr`` (full image), ``psnr_fg`` (inside the mask), ``psnr_interior`` (inside the mask
-    eroded by 2 px: what the silhouette's edge costs is the difference), ``ssim``, ``lpips``.
+    eroded by 2 px: what the silhouette's edge costs is the difference), ``ssim``, ``lpips`` (protocol ``ours``),
+    and ``ag_psnr``, ``ag_ssim``, ``ag_lpips_<net>``: the field's protocol (:mod:`gsavatar.metrics.protocols`;
+    LPIPS with the ``ag_lpips`` nets).
     """
+    from gsavatar.metrics.protocols import ag_scores, on_white
     from gsavatar.metrics.image import psnr, ssim
 
     net.eval()
@@ -49,9 +53,12 @@ def evaluate_views(net: AvatarNet, data: ViewDataset, device: torch.device, sh_d
         out = net(FrameBatch.from_dict(b, latents), sh_degree=sh_degree)
         H, W = b["image"].shape[-2:]
         bg = torch.zeros(1, 3, device=device)
-        pred, _ = render_views(out.avatar, b["viewmat"], b["K"], W, H, bg, sh_degree, backend)
+        pred, alpha = render_views(out.avatar, b["viewmat"], b["K"], W, H, bg, sh_degree, backend)
         pred = pred.clamp(0, 1)
         gt = b["image"] * b["mask"]
+        for k, v in ag_scores(on_white(pred[0], alpha[0]).clamp(0, 1), on_white(gt[0], b["mask"][0]), b["mask"][0],
+                              ag_lpips).items():
+            rows.setdefault(f"ag_{k}", []).append(v)
         rows["psnr"].append(float(psnr(pred, gt)[0]))
         rows["psnr_fg"].append(float(psnr(pred, gt, mask=(b["mask"] > 0.5).expand_as(gt))[0]))
         rows["psnr_interior"].append(float(psnr(pred, gt, mask=(erode_mask(b["mask"], 2) > 0.5).expand_as(gt))[0]))

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from gsavatar.metrics.lpips import load_lpips
+from gsavatar.metrics.protocols import PROTOCOLS, load_ag_lpips
 from gsavatar.models.batch import FrameBatch
 from gsavatar.models.encoder import sample_at_uv
 from gsavatar.models.net import AvatarNet
@@ -37,15 +38,17 @@ def train_and_evaluate(cfg: TrainConfig, evaluate: bool = True, force_out: bool 
     return summary
 
 
-def evaluate_run(run: Path, eval_frames: int = 8, loaded: LoadedRun | None = None) -> dict:
+def evaluate_run(run: Path, eval_frames: int = 8, loaded: LoadedRun | None = None, ag_lpips: str = "auto") -> dict:
     """Held-out cameras of training frames ("novel view") and held-out frames ("novel pose"), encoder latents.
 
-    ``loaded``: the run as a live trainer holds it, to skip reloading the checkpoint.
+    ``loaded``: the run as a live trainer holds it, to skip reloading the checkpoint. ``ag_lpips``: the
+    ``ag`` protocol's LPIPS (:func:`gsavatar.metrics.protocols.load_ag_lpips`; ``auto`` = on CUDA).
     """
     run = Path(run)
     net, scene, cfg, _ = loaded if loaded is not None else load_run(run)
     dev = next(net.parameters()).device
     lp = load_lpips(cfg.lpips, dev, cfg.lpips_weights)  # evaluation: the metric unless --lpips off
+    ag_nets, ag_names = load_ag_lpips(dev, "off" if cfg.lpips == "off" else ag_lpips)
     splits = scene.capture.splits
     sh = model_config(cfg).sh_degree
     results = {}
@@ -56,7 +59,8 @@ def evaluate_run(run: Path, eval_frames: int = 8, loaded: LoadedRun | None = Non
     for name, (frames, cams) in sets.items():
         data = ViewDataset(scene, "train", cameras=cams, frames=frames, image_scale=cfg.image_scale,
                            with_texture=net.encoder is not None, texture_source=cfg.texture_source)
-        results[name] = evaluate_views(net, data, dev, sh, cfg.backend, lpips=lp.net, save_dir=run / "eval" / name)
+        results[name] = evaluate_views(net, data, dev, sh, cfg.backend, lpips=lp.net, save_dir=run / "eval" / name,
+                                       ag_lpips=ag_nets)
     if net.encoder is not None and "test" in splits:
         # How much the appearance latent buys: the same held-out views with every frame's latents replaced by
         # the training frames' mean latent. ~0 dB means the avatar ignores its latents.
@@ -70,6 +74,8 @@ def evaluate_run(run: Path, eval_frames: int = 8, loaded: LoadedRun | None = Non
     if fd is not None:
         results["frame_dependence"] = fd
     results["lpips_net"] = lp.name
+    results["protocols"] = dict(PROTOCOLS)
+    results["ag_lpips_nets"] = ag_names
     results["variant"] = cfg.variant
     atomic_write_json(run / "eval" / "metrics.json", results)
     return results
