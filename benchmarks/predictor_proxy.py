@@ -34,11 +34,13 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=128)
     ap.add_argument("--weight-decay", type=float, default=1e-2)
     ap.add_argument("--absolute", action="store_true", help="l_t = mean + head(h) (not residual)")
+    ap.add_argument("--joint-tokens", action="store_true", help="joint-position tokens in the heading frame")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
 
     from gsavatar.data_schema import load_capture
+    from gsavatar.geometry.lbs import KinematicChain
     from gsavatar.models.predictor import AppearancePredictor, PredictorConfig
     from gsavatar.synth.fairness import pooled_r2
     from gsavatar.train.predictor import (PredictorTrainConfig, PredictorTrainer, SequenceData, prepare_model,
@@ -55,11 +57,12 @@ def main() -> None:
                         torch.as_tensor(m.root_translation, dtype=torch.float32), lv[:, None])
     cfg = PredictorConfig(history=a.history, latent_dim=lv.shape[1], latent_pca_components=lv.shape[1],
                           width=a.width, residual=not a.absolute, initial_net=False,
-                          velocities=not a.no_velocities)
+                          velocities=not a.no_velocities, joint_tokens=a.joint_tokens)
     if a.no_velocities:
         cfg = dataclasses.replace(cfg, history=1)
     slots = np.arange(cap.rig.pose_dim)
-    model = AppearancePredictor(cfg, 1, slots, cap.rig.pose_dim, None, seed=a.seed)
+    model = AppearancePredictor(cfg, 1, slots, cap.rig.pose_dim, None, seed=a.seed,
+                                kinematics=KinematicChain.from_rig(cap.rig) if a.joint_tokens else None)
     train = split_segments(data.frames, cap.splits["train"].frames)
     test = split_segments(data.frames, cap.splits["test"].frames)
     prepare_model(model, data, train)
@@ -72,7 +75,7 @@ def main() -> None:
     PredictorTrainer(model, data, train, tcfg, out).train()
     secs = time.perf_counter() - t0
     model.eval()
-    res = {"name": a.name, "history": cfg.history, "velocities": cfg.velocities, "steps": a.steps, "seconds": secs}
+    res = {"name": a.name, "history": cfg.history, "velocities": cfg.velocities, "joint_tokens": cfg.joint_tokens, "steps": a.steps, "seconds": secs}
     s, e = test[0]
     gt = lv[s:e]
     P, R, T = data.pose[s:e], data.root_rotation[s:e], data.root_translation[s:e]

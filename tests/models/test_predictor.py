@@ -7,11 +7,13 @@ import dataclasses
 import pytest
 import torch
 
+from gsavatar.geometry.lbs import KinematicChain
 from gsavatar.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from gsavatar.models.predictor import (
     AppearancePredictor,
     PredictorConfig,
     fit_latent_pca,
+    heading_frame,
     latent_pca_project,
     relative_root_motion,
     window_features,
@@ -240,3 +242,93 @@ def test_zero_latents_are_the_standardised_zero():
     torch.testing.assert_close(m.zero_latents(), lat.mean(0))
     m.config = dataclasses.replace(m.config, zero_context="raw")
     torch.testing.assert_close(m.zero_latents(), torch.zeros(A, L))
+
+
+# ----------------------------------------------------------------------------- joint tokens
+def joint_model(**kw) -> AppearancePredictor:
+    from tests.prep_fixtures import arm_rig
+
+    rig = arm_rig()
+    cfg = PredictorConfig(**{**SMALL.to_json(), "joint_tokens": True, **kw})
+    torch.manual_seed(0)
+    m = AppearancePredictor(cfg, A, [0, 2, 3, 5, 7], rig.pose_dim, seed=0, kinematics=KinematicChain.from_rig(rig))
+    with torch.no_grad():
+        m.head.weight.copy_(torch.randn(m.head.weight.shape, generator=torch.Generator().manual_seed(3)) * 0.3)
+        m.joint_feature_scale.fill_(3.0)  # joint features visibly move the output
+    return m.eval()
+
+
+def joint_seq(T: int, P: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    t = torch.arange(T, dtype=torch.float32)[:, None]
+    pose = 0.5 * torch.sin(0.4 * t + torch.rand(1, P, generator=g) * 6)
+    rot = 0.3 * torch.randn(T, 3, generator=g)
+    trans = torch.randn(T, 3, generator=g) * 0.1
+    return pose, rot, trans
+
+
+def test_kinematic_chain_is_the_rigs_forward_kinematics():
+    from gsavatar.geometry.lbs import pose_joints
+    from tests.prep_fixtures import arm_rig
+
+    rig = arm_rig()
+    chain = KinematicChain(*KinematicChain.from_rig(rig).arrays())  # through its arrays, as from a checkpoint
+    pose, rot, trans = joint_seq(6, rig.pose_dim)
+    d = lambda x: x.double()  # noqa: E731
+    torch.testing.assert_close(pose_joints(chain, d(pose), d(rot), d(trans)), pose_joints(rig, d(pose), d(rot), d(trans)),
+                               atol=1e-12, rtol=0)
+    with pytest.raises(ValueError, match="parents must come before"):
+        KinematicChain(rig.heads(), [1, 0, 0, 0, 0, 0], *KinematicChain.from_rig(rig).arrays()[2:])
+
+
+def test_heading_frame_closed_form():
+    # upright root facing +X (a +90 degree turn about +Y takes +Z to +X), standing at (2, 0.9, 3)
+    R = axis_angle_to_matrix(torch.tensor([[0.0, torch.pi / 2, 0.0]], dtype=torch.float64))  # [1, 3, 3]
+    joints = torch.tensor([[[[2.0, 0.9, 3.0], [3.0, 1.5, 3.0], [2.0, 0.9, 2.0]]]], dtype=torch.float64)  # [1,1,3,3]
+    q = heading_frame(joints, R)
+    # ahead of the root (+X world) becomes +Z, its left (-Z world) +X; heights stay
+    expect = torch.tensor([[[[0.0, 0.9, 0.0], [0.0, 1.5, 1.0], [1.0, 0.9, 0.0]]]], dtype=torch.float64)
+    torch.testing.assert_close(q, expect, atol=1e-12, rtol=0)
+    # lying face down (forward = -Y): the heading comes from the left axis and stays defined
+    R2 = axis_angle_to_matrix(torch.tensor([[torch.pi / 2, 0.0, 0.0]], dtype=torch.float64))
+    assert torch.isfinite(heading_frame(joints, R2)).all()
+
+
+def test_joint_tokens_see_gravity_but_not_heading_or_position():
+    m = joint_model()
+    P = m.pose_dim
+    pose, rot, trans = joint_seq(N, P)
+    prev = torch.randn(1, A, L)
+    head = torch.as_tensor(m.kin_heads[m.root_joint], dtype=torch.float64)
+    a = m(pose[None], rot[None], trans[None], prev)
+
+    def moved(Q: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        # world' = Q world + c for every point: root rotation Q R, translation Q (head + t) + c - head
+        rot2 = matrix_to_axis_angle(Q @ axis_angle_to_matrix(rot.double())).float()
+        trans2 = ((head + trans.double()) @ Q.T + c - head).float()
+        return rot2, trans2
+
+    yaw = axis_angle_to_matrix(torch.tensor([0.0, 2.1, 0.0], dtype=torch.float64))
+    r2, t2 = moved(yaw, torch.tensor([1.5, 0.0, -2.0], dtype=torch.float64))
+    torch.testing.assert_close(m(pose[None], r2[None], t2[None], prev), a, atol=1e-4, rtol=0)
+    tilt = axis_angle_to_matrix(torch.tensor([0.6, 0.0, 0.0], dtype=torch.float64))  # gravity is not a symmetry
+    r3, t3 = moved(tilt, torch.zeros(3, dtype=torch.float64))
+    assert (m(pose[None], r3[None], t3[None], prev) - a).abs().max() > 1e-3
+    lift = torch.tensor([0.0, 0.4, 0.0], dtype=torch.float64)  # nor is height
+    r4, t4 = moved(torch.eye(3, dtype=torch.float64), lift)
+    assert (m(pose[None], r4[None], t4[None], prev) - a).abs().max() > 1e-3
+
+
+def test_joint_token_predictor_rebuilds_from_its_state_dict():
+    from gsavatar.models.predictor import KINEMATICS_KEYS
+
+    m = joint_model()
+    sd = m.state_dict()
+    m2 = AppearancePredictor(m.config, A, sd["pose_slots"], m.pose_dim, seed=1,
+                             kinematics=tuple(sd[k] for k in KINEMATICS_KEYS))
+    m2.load_state_dict(sd)
+    pose, rot, trans = joint_seq(9, m.pose_dim, seed=2)
+    torch.testing.assert_close(m2.eval().rollout(pose, rot, trans, torch.zeros(A, L)),
+                               m.rollout(pose, rot, trans, torch.zeros(A, L)), atol=0, rtol=0)
+    with pytest.raises(ValueError, match="kinematics"):
+        AppearancePredictor(m.config, A, [0], m.pose_dim)

@@ -7,7 +7,7 @@ world position. Root motion: ``world = R_root (x - head_root) + head_root + t_ro
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import numpy as np
 import torch
@@ -38,6 +38,68 @@ class Rig(Protocol):
     def parents(self) -> np.ndarray: ...  # [J] int, -1 for the root
 
     def joint_index(self, name: str) -> int: ...
+
+
+class ChainParam(NamedTuple):
+    """One pose parameter of a :class:`KinematicChain` (the :class:`RigParam` shape)."""
+
+    joint: str
+    kind: str
+    axis: tuple[float, float, float]
+    size: int
+
+
+class KinematicChain:
+    """A rig's kinematics as plain arrays (what forward kinematics needs, no names), so a model can keep them
+    as buffers and rebuild the chain from a checkpoint alone. Implements :class:`Rig`; joints are named by
+    their index.
+
+    Args:
+        heads: rest joint positions, metres.  # [J, 3]
+        parents: parent per joint, -1 for the root (parents before children).  # [J]
+        param_joint: joint index of every pose parameter, in pose-vector order.  # [M]
+        param_axis: unit euler axis of every parameter (zeros for axis-angle ones).  # [M, 3]
+        param_size: pose slots of every parameter: 1 (euler) or 3 (axis-angle).  # [M]
+    """
+
+    def __init__(self, heads, parents, param_joint, param_axis, param_size) -> None:
+        as_np = lambda a: a.detach().cpu().numpy() if isinstance(a, Tensor) else np.asarray(a)  # noqa: E731
+        self._heads = as_np(heads).astype(np.float32).reshape(-1, 3)
+        self._parents = as_np(parents).astype(np.int64).reshape(-1)
+        joint, axis, size = (as_np(param_joint).astype(np.int64).reshape(-1),
+                             as_np(param_axis).astype(np.float64).reshape(-1, 3), as_np(param_size).astype(np.int64).reshape(-1))
+        J = len(self._heads)
+        if len(self._parents) != J or not (len(joint) == len(axis) == len(size)):
+            raise ValueError(f"kinematic chain: {J} heads, {len(self._parents)} parents, {len(joint)}/{len(axis)}/"
+                             f"{len(size)} parameter joints/axes/sizes: lengths must agree")
+        if np.any(self._parents >= np.arange(J)) or np.any(self._parents < -1):
+            raise ValueError("kinematic chain: parents must come before their children (-1 for a root)")
+        if np.any((joint < 0) | (joint >= J)) or not np.all(np.isin(size, (1, 3))):
+            raise ValueError("kinematic chain: parameter joints must index the joints and sizes be 1 or 3")
+        self.params = [ChainParam(str(int(j)), "euler" if s == 1 else "axis_angle", tuple(a), int(s))
+                       for j, a, s in zip(joint, axis, size)]
+        self.num_joints, self.pose_dim = J, int(size.sum())
+
+    @classmethod
+    def from_rig(cls, rig: Rig) -> "KinematicChain":
+        joint = [rig.joint_index(p.joint) for p in rig.params]
+        axis = [tuple(p.axis) if p.kind == "euler" else (0.0, 0.0, 0.0) for p in rig.params]
+        return cls(rig.heads(), rig.parents(), joint, axis, [p.size for p in rig.params])
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(heads, parents, param_joint, param_axis, param_size)``, the constructor's arguments."""
+        return (self._heads.copy(), self._parents.copy(), np.array([int(p.joint) for p in self.params], np.int64),
+                np.array([p.axis for p in self.params], np.float32).reshape(-1, 3),
+                np.array([p.size for p in self.params], np.int64))
+
+    def heads(self) -> np.ndarray:
+        return self._heads
+
+    def parents(self) -> np.ndarray:
+        return self._parents
+
+    def joint_index(self, name: str) -> int:
+        return int(name)
 
 
 class RigTensors:

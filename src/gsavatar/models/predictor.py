@@ -60,6 +60,7 @@ import torch
 from torch import Tensor, nn
 
 from gsavatar.data_schema.pose_pca import clamp_coefficients, pca_project
+from gsavatar.geometry.lbs import KinematicChain, RigTensors, skinning_transforms
 from gsavatar.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from gsavatar.models.mlp import AnchorMLPs
 from gsavatar.utils.jsonio import config_to_json
@@ -110,6 +111,13 @@ class PredictorConfig:
     the predictor's standardised latent space, i.e. the training-mean latent (our encoder's latents are not
     zero-mean: raw zeros lie ~2x farther from every frame's latents than the mean does); ``raw`` = the zero
     vector (checkpoints written before this field). Measured in docs/train.md."""
+    joint_tokens: bool = False
+    """Also one token per rig joint from its posed position over the window (forward kinematics of the pose and
+    root inside the predictor) in the last frame's *heading frame*: +Y (gravity) kept, origin under the root,
+    turned about +Y so the root faces +Z; values, velocities and accelerations of the three coordinates (beyond
+    the paper, whose tokens are joint angles: cloth and hair respond to where limbs are and how fast they move
+    relative to gravity, which joint angles encode only through the nonlinear kinematic chain, and the paper's
+    root-frame normalisation tilts with the pelvis). Needs the rig (``kinematics``). Measured in docs/train.md."""
     initial_net: bool = True
     """Build the pose-conditioned :class:`InitialLatentNet` (beyond the paper)."""
     initial_hidden: int = 128
@@ -138,6 +146,10 @@ class RolloutState(NamedTuple):
     """Latents of the previous frame.  # [A, L]"""
 
 
+KINEMATICS_KEYS = ("kin_heads", "kin_parents", "kin_param_joint", "kin_param_axis", "kin_param_size")
+"""State-dict buffers of a predictor with ``joint_tokens``: the :class:`KinematicChain` arrays, in its argument order."""
+
+
 class LatentPCA(NamedTuple):
     mean: Tensor
     """Per-anchor mean latent.  # [A, L]"""
@@ -161,6 +173,28 @@ def relative_root_motion(root_rotation: Tensor, root_translation: Tensor) -> Ten
     t = root_translation.double()
     trans = (RlT @ (t - t[:, -1:])[..., None])[..., 0]  # [B, N, 3]
     return torch.cat([rot, trans], -1).to(dt)
+
+
+def heading_frame(joints: Tensor, root_world_rotation: Tensor) -> Tensor:
+    """Window joint positions in the last frame's heading frame (+Y up kept, float64 inside).
+
+    Origin: the last frame's root joint projected on the ``y = 0`` plane (heights stay heights); axes: turned
+    about +Y by the root's heading, the horizontal direction of its forward (+Z) axis plus its left (+X) axis
+    crossed with up (the two agree for an upright body; their sum stays defined lying down).
+    joints [B, N, J, 3] world, root_world_rotation [B, 3, 3] (the root joint at the last frame) -> [B, N, J, 3]
+    """
+    dt = joints.dtype
+    R = root_world_rotation.double()
+    hx = R[:, 0, 2] - R[:, 2, 0]  # forward.x + (left x up).x = f_x - l_z
+    hz = R[:, 2, 2] + R[:, 0, 0]  # forward.z + (left x up).z = f_z + l_x
+    n = torch.sqrt(hx * hx + hz * hz).clamp_min(1e-12)
+    c, s = (hz / n)[:, None, None], (hx / n)[:, None, None]  # cos, sin of the heading yaw  [B, 1, 1]
+    p = joints.double()
+    origin = p[:, -1:, :1].clone()  # [B, 1, 1, 3] the root joint, last frame
+    origin[..., 1] = 0.0
+    q = p - origin
+    x, y, z = q.unbind(-1)
+    return torch.stack([c * x - s * z, y, s * x + c * z], -1).to(dt)
 
 
 def window_features(x: Tensor) -> Tensor:
@@ -259,10 +293,13 @@ class AppearancePredictor(nn.Module):
         pose_pca: optional ``(mean [P], basis [P, C], limit [C])`` of the avatar's pose
             PCA; poses are projected and clamped with it before anything else.
         seed: initialisation seed.
+        kinematics: the rig's :class:`KinematicChain` (or its :meth:`~KinematicChain.arrays`); required with
+            ``config.joint_tokens`` (joint positions come from its forward kinematics), ignored otherwise.
     """
 
     def __init__(self, config: PredictorConfig, num_anchors: int, pose_slots: Sequence[int] | np.ndarray | Tensor,
-                 pose_dim: int, pose_pca: tuple | None = None, seed: int = 0) -> None:
+                 pose_dim: int, pose_pca: tuple | None = None, seed: int = 0,
+                 kinematics: KinematicChain | tuple | None = None) -> None:
         super().__init__()
         c = config
         if c.history < (3 if c.velocities else 1):
@@ -285,7 +322,17 @@ class AppearancePredictor(nn.Module):
         K = c.latent_pca_components if c.latent_pca == "anchor" else 0
         S = int(slots.numel()) + ROOT_SLOTS
         Fdim = 3 * c.history - 3 if c.velocities else c.history
-        self.num_slots, self.feature_dim = S, Fdim
+        self.chain: KinematicChain | None = None
+        if c.joint_tokens:
+            if kinematics is None:
+                raise ValueError("config.joint_tokens needs the rig's kinematics (KinematicChain), got None")
+            self.chain = kinematics if isinstance(kinematics, KinematicChain) else KinematicChain(*kinematics)
+            if self.chain.pose_dim != pose_dim:
+                raise ValueError(f"kinematics drive {self.chain.pose_dim} pose slots, pose_dim is {pose_dim}")
+            self._rig = RigTensors(self.chain)
+            self.root_joint = int(np.flatnonzero(self.chain.parents() < 0)[0])
+        J = self.chain.num_joints if self.chain is not None else 0
+        self.num_slots, self.num_joints, self.feature_dim = S, J, Fdim
         f32 = lambda a: None if a is None else torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
         self.register_buffer("pose_slots", slots)  # [S - 6]
         pm, pb, pl = pose_pca if pose_pca is not None else (None, None, None)
@@ -294,6 +341,11 @@ class AppearancePredictor(nn.Module):
         self.register_buffer("pose_pca_limit", f32(pl))  # [C] or None
         self.register_buffer("feature_mean", torch.zeros(S, Fdim))  # [S, 3N-3]
         self.register_buffer("feature_scale", torch.ones(S, Fdim))  # [S, 3N-3] 1/std, 0 for constant features
+        if self.chain is not None:  # only then: checkpoints without joint tokens keep their state_dict keys
+            for key, arr in zip(KINEMATICS_KEYS, self.chain.arrays()):
+                self.register_buffer(key, torch.as_tensor(arr))
+            self.register_buffer("joint_feature_mean", torch.zeros(J, 3 * Fdim))  # [J, 3 (3N-3)] x, y, z blocks
+            self.register_buffer("joint_feature_scale", torch.ones(J, 3 * Fdim))
         self.register_buffer("latent_mean", torch.zeros(A, L))  # [A, L] train mean (also the PCA centre)
         self.register_buffer("latent_scale", torch.ones(A, L))  # [A, L] train std (floored)
         self.register_buffer("latent_basis", torch.zeros(A, L, K))
@@ -304,7 +356,7 @@ class AppearancePredictor(nn.Module):
             self.register_buffer("global_basis", torch.zeros(A * L, Kg))  # [A*L, Kg] standardised space
             self.register_buffer("global_limit", torch.zeros(Kg))  # [Kg]
         self.register_buffer("initial_ready", torch.tensor(False))
-        self.register_buffer("positional", sinusoidal_encoding(S + A, D), persistent=False)  # [S + A, D]
+        self.register_buffer("positional", sinusoidal_encoding(S + J + A, D), persistent=False)  # [S + J + A, D]
 
         gen = torch.Generator().manual_seed(seed)
         with torch.random.fork_rng(devices=[]):  # nn.TransformerEncoderLayer / nn.Linear draw from the global RNG
@@ -312,6 +364,9 @@ class AppearancePredictor(nn.Module):
             self.pose_tokens = AnchorMLPs(S, Fdim, D, (c.token_hidden,), generator=gen)
             self.latent_tokens = AnchorMLPs(A, L, D, (c.token_hidden,), generator=gen)
             self.type_embedding = nn.Parameter(torch.zeros(2, D))  # [pose, latent]
+            if J:
+                self.joint_tokens = AnchorMLPs(J, 3 * Fdim, D, (c.token_hidden,), generator=gen)
+                self.joint_type_embedding = nn.Parameter(torch.zeros(D))
             layer = nn.TransformerEncoderLayer(D, c.heads, c.ff, c.dropout, activation="gelu", batch_first=True,
                                                norm_first=True)
             self.transformer = nn.TransformerEncoder(layer, c.blocks, enable_nested_tensor=False)
@@ -344,17 +399,52 @@ class AppearancePredictor(nn.Module):
         x = self.slot_values(pose_window, root_rot_window, root_trans_window)
         return window_features(x) if self.config.velocities else x.transpose(1, 2)
 
+    def joint_features(self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor) -> Tensor:
+        """Raw joint-token features (``config.joint_tokens``): every joint's heading-frame position over the
+        window (:func:`heading_frame`; forward kinematics of the raw pose), then the values, velocities and
+        accelerations of x, y, z. [B, N, P], [B, N, 3], [B, N, 3] -> [B, J, 3 (3N-3)] (values only: [B, J, 3N])"""
+        if self.chain is None:
+            raise ValueError("joint_features needs config.joint_tokens")
+        B, N, P = pose_window.shape
+        if self._rig.heads.device != pose_window.device:  # built on the CPU; follow the inputs
+            self._rig = RigTensors(self.chain, pose_window.device)
+        T = skinning_transforms(self._rig, pose_window.reshape(B * N, P), root_rot_window.reshape(B * N, 3),
+                                root_trans_window.reshape(B * N, 3))  # [B*N, J, 4, 4]
+        heads = self._rig.heads.to(T)
+        joints = ((T[..., :3, :3] @ heads[None, :, :, None])[..., 0] + T[..., :3, 3]).reshape(B, N, -1, 3)
+        q = heading_frame(joints, T.reshape(B, N, -1, 4, 4)[:, -1, self.root_joint, :3, :3])  # [B, N, J, 3]
+        J = q.shape[2]
+        x = q.permute(0, 1, 3, 2).reshape(B, N, 3 * J)  # slot = coordinate * J + joint
+        f = window_features(x) if self.config.velocities else x.transpose(1, 2)  # [B, 3J, F]
+        return f.reshape(B, 3, J, -1).permute(0, 2, 1, 3).reshape(B, J, -1)  # [B, J, 3F]: x block, y, z
+
+    def input_features(self, pose_window: Tensor, root_rot_window: Tensor,
+                       root_trans_window: Tensor) -> tuple[Tensor, Tensor | None]:
+        """Raw features of every token kind: (pose slots [B, S, F], joints [B, J, 3F] or None)."""
+        x = self.features(pose_window, root_rot_window, root_trans_window)
+        xj = self.joint_features(pose_window, root_rot_window, root_trans_window) if self.chain is not None else None
+        return x, xj
+
     @torch.no_grad()
-    def fit_input_normalization(self, features: Tensor, min_std: float = 1e-6) -> None:
+    def fit_input_normalization(self, features: Tensor, joint_features: Tensor | None = None,
+                                min_std: float = 1e-6) -> None:
         """Standardise each (slot, feature) with training statistics; constant ones are dropped.
 
-        features [n, S, 3N-3] as returned by :meth:`features`.
+        features [n, S, 3N-3] as returned by :meth:`features`; ``joint_features`` [n, J, 3 (3N-3)] from
+        :meth:`joint_features` (required with ``config.joint_tokens``).
         """
         _check("features", features, (None, self.num_slots, self.feature_dim))
-        f = features.double()
-        mean, std = f.mean(0), f.std(0, unbiased=False)
-        self.feature_mean.copy_(mean)
-        self.feature_scale.copy_(torch.where(std > min_std, 1.0 / std.clamp_min(min_std), torch.zeros_like(std)))
+        pairs = [(features, self.feature_mean, self.feature_scale)]
+        if self.chain is not None:
+            if joint_features is None:
+                raise ValueError("fit_input_normalization: config.joint_tokens needs joint_features")
+            _check("joint_features", joint_features, (features.shape[0], self.num_joints, 3 * self.feature_dim))
+            pairs.append((joint_features, self.joint_feature_mean, self.joint_feature_scale))
+        for f, mean_buf, scale_buf in pairs:
+            f = f.double()
+            mean, std = f.mean(0), f.std(0, unbiased=False)
+            mean_buf.copy_(mean)
+            scale_buf.copy_(torch.where(std > min_std, 1.0 / std.clamp_min(min_std), torch.zeros_like(std)))
 
     @torch.no_grad()
     def fit_latent_statistics(self, latents: Tensor, rel_floor: float = 0.1) -> LatentPCA:
@@ -411,13 +501,18 @@ class AppearancePredictor(nn.Module):
         _check("root_rot_window", root_rot_window, (B, N, 3))
         _check("root_trans_window", root_trans_window, (B, N, 3))
         _check("prev_latents", prev_latents, (B, A, L))
-        x = (self.features(pose_window, root_rot_window, root_trans_window) - self.feature_mean) * self.feature_scale
+        x, xj = self.input_features(pose_window, root_rot_window, root_trans_window)
+        x = (x - self.feature_mean) * self.feature_scale
         lat = (prev_latents - self.latent_mean) / self.latent_scale  # [B, A, L] standardised
-        tokens = torch.cat([self.pose_tokens(x) + self.type_embedding[0],
-                            self.latent_tokens(lat) + self.type_embedding[1]], 1)  # [B, S + A, D]
+        parts = [self.pose_tokens(x) + self.type_embedding[0]]
+        if xj is not None:
+            parts.append(self.joint_tokens((xj - self.joint_feature_mean) * self.joint_feature_scale)
+                         + self.joint_type_embedding)
+        parts.append(self.latent_tokens(lat) + self.type_embedding[1])
+        tokens = torch.cat(parts, 1)  # [B, S + J + A, D]
         h = self.norm(self.transformer(tokens + self.positional.to(tokens)))
         base = prev_latents if self.config.residual else self.latent_mean
-        out = base + self.latent_scale * self.head(h[:, self.num_slots:])  # [B, A, L]
+        out = base + self.latent_scale * self.head(h[:, self.num_slots + self.num_joints:])  # [B, A, L]
         return self.clamp_latents(out)
 
     # ------------------------------------------------------------------ initial latents

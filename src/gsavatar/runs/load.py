@@ -16,7 +16,7 @@ from gsavatar.data_schema.dataset import dataset_fingerprint
 from gsavatar.data_schema.prepared import PreparedScene, load_scene
 from gsavatar.models.config import ModelConfig
 from gsavatar.models.net import AvatarNet, build_net
-from gsavatar.models.predictor import LEGACY_CONFIG, AppearancePredictor, PredictorConfig
+from gsavatar.models.predictor import KINEMATICS_KEYS, LEGACY_CONFIG, AppearancePredictor, PredictorConfig
 from gsavatar.runs.checkpoint import check_same_dataset, load_checkpoint
 from gsavatar.runs.config import TrainConfig, check_train_config, from_json, model_config, model_config_from_json, resolve
 from gsavatar.utils.errors import SchemaError
@@ -85,6 +85,8 @@ def predictor_from_checkpoint(path: Path, device: str | torch.device = "cpu") ->
     sd = state["modules"]["predictor"]
     cfg = PredictorConfig(**{**LEGACY_CONFIG, **state["config"]["model"]})  # fields older checkpoints lack
     pca = (sd["pose_pca_mean"], sd["pose_pca_basis"], sd["pose_pca_limit"]) if "pose_pca_basis" in sd else None
-    m = AppearancePredictor(cfg, sd["latent_mean"].shape[0], sd["pose_slots"], int(state["config"]["pose_dim"]), pca)
+    kin = tuple(sd[k] for k in KINEMATICS_KEYS) if KINEMATICS_KEYS[0] in sd else None
+    m = AppearancePredictor(cfg, sd["latent_mean"].shape[0], sd["pose_slots"], int(state["config"]["pose_dim"]), pca,
+                            kinematics=kin)
     m.load_state_dict(sd)
     return m.to(device).eval()

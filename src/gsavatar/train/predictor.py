@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from gsavatar.data_schema.prepared import ProjectedTextures
+from gsavatar.geometry.lbs import KinematicChain
 from gsavatar.models.predictor import LEGACY_CONFIG, AppearancePredictor, PredictorConfig
 from gsavatar.runs.checkpoint import load_checkpoint, resume_hint, save_checkpoint
 from gsavatar.runs.load import LoadedRun, load_run
@@ -258,7 +259,9 @@ def build_predictor(scene, config: PredictorConfig, latent_dim: int, avatar_pca:
     cfg = dataclasses.replace(config, latent_dim=int(latent_dim),
                               latent_pca_components=config.latent_pca_components if config.latent_pca == "global"
                               else min(config.latent_pca_components, int(latent_dim)))
-    return AppearancePredictor(cfg, scene.hierarchy.num_anchors, slots, scene.capture.rig.pose_dim, pose_pca, seed)
+    kin = KinematicChain.from_rig(scene.capture.rig) if cfg.joint_tokens else None
+    return AppearancePredictor(cfg, scene.hierarchy.num_anchors, slots, scene.capture.rig.pose_dim, pose_pca, seed,
+                               kinematics=kin)
 
 
 @torch.no_grad()
@@ -268,9 +271,10 @@ def prepare_model(model: AppearancePredictor, data: SequenceData, segments: list
     rows = torch.cat([torch.arange(s, e) for s, e in segments]).to(data.pose.device)
     starts = torch.cat([torch.full((e - s,), s) for s, e in segments]).to(data.pose.device)
     hist = history_index(rows, starts, model.config.history)  # [n, N_b]
-    feats = torch.cat([model.features(data.pose[h], data.root_rotation[h], data.root_translation[h])
-                       for h in hist.split(chunk)])
-    model.fit_input_normalization(feats)
+    parts = [model.input_features(data.pose[h], data.root_rotation[h], data.root_translation[h])
+             for h in hist.split(chunk)]
+    joints = torch.cat([p[1] for p in parts]) if model.chain is not None else None
+    model.fit_input_normalization(torch.cat([p[0] for p in parts]), joints)
     model.fit_latent_statistics(data.latents[rows])
     lat = data.latents[rows].double()
     total = float(((lat - lat.mean(0)) ** 2).sum())
