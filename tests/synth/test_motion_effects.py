@@ -138,3 +138,15 @@ def test_presets_round_trip_their_motion_effects():
         assert SynthConfig.from_json(cfg.to_json()) == cfg
         n_test = round(cfg.num_frames * cfg.test_fraction)
         assert n_test >= 90  # re-init 30 fires in the test segment
+
+
+def test_mean_crossings_count_flips_and_flag_states_with_few_events():
+    from gsavatar.synth.fairness import MIN_TRAIN_CROSSINGS, few_event_states, mean_crossings
+
+    s = np.array([0, 0, 1, 1, 0.5, 1, 0, 0, 1], np.float64)  # mean 0.5: 0.5 continues the side before it
+    assert mean_crossings(s[:, None], np.array([0.5])) == [3]
+    flips = np.zeros((40, 2))
+    flips[10:20, 0] = 1  # two flips
+    flips[:, 1] = np.tile([0, 1], 20)  # 39
+    w = few_event_states({"crossings": {"train": mean_crossings(flips, flips.mean(0))}}, ["cuff", "swing"])
+    assert len(w) == 1 and "'cuff'" in w[0] and "2 times" in w[0] and MIN_TRAIN_CROSSINGS > 2

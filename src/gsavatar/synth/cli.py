@@ -13,6 +13,7 @@ from typing import Literal
 
 from gsavatar.data_schema import load_capture
 from gsavatar.synth.body import default_anny_cache
+from gsavatar.synth.fairness import few_event_states
 from gsavatar.synth.make import make_capture
 from gsavatar.synth.presets import preset
 from gsavatar.utils.jsonio import read_json
@@ -53,3 +54,5 @@ class Synth:
             print(f"history-caused appearance ({', '.join(e.name for e in cfg.appearance.motion_effects)}): R^2 on test "
                   f"frames from the current pose {d['pose_only']:.2f}, from the last {d['history_frames']} poses "
                   f"{d['history']:.2f} ({fair})")
+            for w in few_event_states(d, [e.name for e in cfg.appearance.motion_effects]):
+                print(f"warning: {w}")

@@ -88,13 +88,38 @@ def ridge_cv(X: np.ndarray, Y: np.ndarray, folds: int = 5) -> float:
     return best
 
 
+MIN_TRAIN_CROSSINGS = 6
+"""Fewer crossings of a state's training mean than this in the training frames: too few events to learn its cause."""
+
+
+def mean_crossings(states: np.ndarray, mean: np.ndarray) -> list[int]:
+    """How often each state crosses ``mean`` (a hysteresis: its flips; a spring: its swings).
+
+    states [F, E], mean [E] -> [E] counts (a frame exactly at the mean continues the previous side)."""
+    side = np.sign(np.asarray(states, np.float64) - np.asarray(mean, np.float64))
+    out = []
+    for e in range(side.shape[1]):
+        s = side[:, e][side[:, e] != 0]
+        out.append(int((s[1:] != s[:-1]).sum()))
+    return out
+
+
+def few_event_states(fairness: dict, names: list[str]) -> list[str]:
+    """Warnings for states that cross their training mean fewer than :data:`MIN_TRAIN_CROSSINGS` times in the
+    training frames (``fairness`` from :func:`predictability`)."""
+    counts = fairness.get("crossings", {}).get("train", [])
+    return [f"state {n!r} crosses its training mean only {c} times in the training frames: too few events for a "
+            f"predictor to learn what causes it" for n, c in zip(names, counts) if c < MIN_TRAIN_CROSSINGS]
+
+
 def predictability(features: np.ndarray, states: np.ndarray, train: np.ndarray, test: np.ndarray,
                    history: int = HISTORY, components: int = 12, raw_columns: int = 0) -> dict:
     """R^2 on ``test`` rows of the pose-only and the history regressor fit on ``train`` rows.
 
     features [F, D] per-frame inputs (the last ``raw_columns`` are kept as they are, the others reduced to
     ``components`` PCA components), states [F, E] targets, train/test frame indices.
-    -> {"pose_only", "history", "per_state": {"pose_only": [E], "history": [E]}, ...}
+    -> {"pose_only", "history", "per_state": {"pose_only": [E], "history": [E]},
+        "crossings": {"train": [E], "test": [E]} (:func:`mean_crossings` of the training mean), ...}
     """
     x = np.asarray(features, np.float64)
     y = np.asarray(states, np.float64).reshape(len(x), -1)
@@ -122,6 +147,8 @@ def predictability(features: np.ndarray, states: np.ndarray, train: np.ndarray, 
         out[name] = pooled_r2(pred, y[test])
         out["per_state"][name] = [pooled_r2(pred[:, [e]], y[test][:, [e]]) for e in range(y.shape[1])]
         out[f"{name}_alpha"] = alphas
+    raw = np.asarray(states, np.float64).reshape(len(x), -1)
+    out["crossings"] = {"train": mean_crossings(raw[train], ym), "test": mean_crossings(raw[test], ym)}
     out.update({"metric": "R^2 on test frames, pooled over standardised states", "history_frames": history,
                 "regressor": f"ridge on {z.shape[1] - raw_columns} pose PCA components (+ {raw_columns} raw), alpha "
                               "per state by 5-fold contiguous CV, clipped to the training range"})
