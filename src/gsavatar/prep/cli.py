@@ -2,6 +2,7 @@
 
     avatar-prep synth --out cap --preset tiny
     avatar-prep import --layout thuman4 --src subject00 --smplx-model SMPLX_NEUTRAL.npz --out cap
+    avatar-prep fit-body --capture cap --keypoints openpose_json --out cap_fitted
     avatar-prep all --capture cap --out ds
     avatar-prep verify ds
 """
@@ -21,6 +22,7 @@ from gsavatar.prep.project_uv import ProjectConfig
 from gsavatar.prep.table import STAGES, Stage, config_of, default_configs, run_stages
 from gsavatar.importers.cli import Import  # the capture sources' commands: the one prep -> importers import
 from gsavatar.synth.cli import Synth  # and the one prep -> synth import (docs/architecture.md)
+from gsavatar.fitting.cli import FitBody  # and prep -> fitting (body poses from 2D keypoints)
 from gsavatar.utils.cli import run_reporting_errors
 
 
@@ -80,6 +82,7 @@ class Verify:
 COMMANDS: dict[str, type] = {
     "synth": Synth,
     "import": Import,
+    "fit-body": FitBody,
     **{s.name: stage_command(s) for s in STAGES},
     "all": All,
     "verify": Verify,

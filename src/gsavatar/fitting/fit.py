@@ -1,0 +1,196 @@
+"""Fit the rig's pose, root motion to triangulated multi-view keypoints (batched over frames, torch).
+
+Per frame ``t`` the unknowns are the pose parameters ``theta_t`` [P] (radians, rig order), the root
+rotation ``r_t`` (axis-angle) and translation ``s_t``; forward kinematics (:func:`gsavatar.geometry.lbs.pose_joints`)
+gives the mapped joints ``J_t`` [M, 3]. The objective, summed over a shard of frames:
+
+- reprojection, robust: ``sum_{c,m} w_{tcm} rho(|pi_c(J_tm) - u_tcm|)`` / ``sum w``, with ``pi_c`` the camera's
+  projection (distortion included), ``w`` = detection confidence x triangulation inlier, and the
+  Geman-McClure ``rho(e) = sigma^2 e^2 / (e^2 + sigma^2)`` (an outlier costs at most ``sigma^2``);
+- 3D: ``lambda_3d rho_m(|J_tm - X_tm|)`` to the triangulated points (speeds up convergence, robust in metres);
+- pose prior: ``lambda_pose |theta_t|^2`` (the rig's rest pose is the mean; joints no keypoint sees stay near it);
+- joint limits: ``lambda_limit sum relu(|theta| - limit)^2``;
+- temporal smoothness: ``lambda_smooth |J_{t+1} - 2 J_t + J_{t-1}|^2`` (metres) and the same on ``theta``.
+
+Initialisation: the root transform per frame by Kabsch from the rest-pose joints to the triangulated torso
+joints, the pose at rest; then ``root_steps`` Adam steps on the root alone and ``steps`` on everything.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from gsavatar.geometry.lbs import RigTensors, pose_joints
+from gsavatar.geometry.rotations import matrix_to_axis_angle
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Weights and schedule of the body fit (module docstring)."""
+
+    steps: int = 800
+    """Adam steps on pose + root (after the root-only ones)."""
+    root_steps: int = 100
+    """Adam steps on the root transform alone, first."""
+    lr: float = 0.05
+    """Adam learning rate (radians / metres per step, roughly)."""
+    sigma_px: float = 10.0
+    """Geman-McClure scale of the reprojection residual, pixels."""
+    sigma_m: float = 0.05
+    """Geman-McClure scale of the 3D residual, metres."""
+    w_3d: float = 1.0
+    """Weight of the 3D term (per m^2 of rho, against the reprojection's per px^2: see ``fit_sequence``)."""
+    w_pose: float = 1e-2
+    """Pose prior weight (per rad^2)."""
+    w_limit: float = 1.0
+    """Joint-limit weight (per rad^2 beyond ``limit``)."""
+    limit: float = 2.6
+    """|theta| beyond this (radians) is penalised."""
+    w_smooth: float = 0.1
+    """Joint acceleration weight (per m^2, frames^-4)."""
+    w_smooth_pose: float = 0.01
+    """Pose acceleration weight (per rad^2)."""
+    min_confidence: float = 0.1
+    """Detections below this confidence are ignored."""
+    threshold_px: float = 15.0
+    """Triangulation inlier threshold, pixels."""
+
+
+def _project(X: Tensor, Ks: Tensor, Rs: Tensor, Ts: Tensor, dists: Tensor) -> tuple[Tensor, Tensor]:
+    """World points [F, M, 3] into C cameras -> (pixels [F, C, M, 2], depth [F, C, M])."""
+    pc = torch.einsum("cij,fmj->fcmi", Rs, X) + Ts[None, :, None]
+    z = pc[..., 2]
+    zs = torch.where(z.abs() < 1e-6, torch.full_like(z, 1e-6), z)
+    x, y = pc[..., 0] / zs, pc[..., 1] / zs
+    k1, k2, p1, p2, k3 = (dists[:, i][None, :, None] for i in range(5))
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    u = Ks[:, 0, 0][None, :, None] * xd + Ks[:, 0, 1][None, :, None] * yd + Ks[:, 0, 2][None, :, None]
+    v = Ks[:, 1, 1][None, :, None] * yd + Ks[:, 1, 2][None, :, None]
+    return torch.stack([u, v], -1), z
+
+
+def geman_mcclure(sq: Tensor, sigma: float) -> Tensor:
+    """``sigma^2 e^2 / (e^2 + sigma^2)`` of squared residuals ``sq``."""
+    s2 = sigma * sigma
+    return s2 * sq / (sq + s2)
+
+
+def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted rigid fit ``dst ~ R src + t``. src, dst [M, 3], w [M] -> (R [3, 3], t [3])."""
+    w = w / w.sum()
+    cs, cd = w @ src, w @ dst
+    H = ((src - cs) * w[:, None]).T @ (dst - cd)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return R, cd - R @ cs
+
+
+def initial_root(rig, joints: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Root rotation (axis-angle) and translation per frame from the rest-pose joints to the triangulated
+    points by Kabsch. joints [M] rig joint indices, points [F, M, 3] (NaN: unset) -> ([F, 3], [F, 3]).
+    Frames with fewer than 3 points copy the nearest frame that has them (zeros if none has)."""
+    F = points.shape[0]
+    heads = rig.heads().astype(np.float64)
+    rest = heads[joints]
+    root = int(np.flatnonzero(rig.parents() < 0)[0])
+    rot, trans = np.zeros((F, 3)), np.zeros((F, 3))
+    good = np.zeros(F, bool)
+    for t in range(F):
+        ok = np.isfinite(points[t]).all(1)
+        if ok.sum() < 3:
+            continue
+        R, s = kabsch(rest[ok], points[t][ok], np.ones(int(ok.sum())))
+        # world = R (x - h) + h + t_root  =>  t_root = s + R h - h
+        rot[t] = matrix_to_axis_angle(torch.as_tensor(R)[None]).numpy()[0]
+        trans[t] = s + R @ heads[root] - heads[root]
+        good[t] = True
+    if good.any():
+        idx = np.flatnonzero(good)
+        near = idx[np.abs(np.arange(F)[:, None] - idx[None]).argmin(1)]
+        rot, trans = rot[near], trans[near]
+    return rot, trans
+
+
+def fit_sequence(rig, cameras: list, keypoints: np.ndarray, joint_map, points: np.ndarray, inliers: np.ndarray,
+                 config: FitConfig = FitConfig(), init: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                 progress=None) -> dict[str, np.ndarray]:
+    """Fit a shard of frames (module docstring).
+
+    keypoints [F, C, K, 3]; joint_map: :class:`~gsavatar.fitting.keypoints.JointMap` (M used keypoints);
+    points [F, K, 3], inliers [F, K, C] from :func:`gsavatar.fitting.triangulate.triangulate`. ``init``:
+    (pose [F, P], root_rotation [F, 3], root_translation [F, 3]) to start from (default: Kabsch root, rest
+    pose). ``progress(i, n)`` is called every step. -> pose, root_rotation, root_translation (float32) and
+    ``reprojection_px`` [F] (mean over inlier detections of the fitted joints; NaN without any).
+    """
+    c = config
+    dt = torch.float64
+    kp_idx, jt_idx = joint_map.keypoints, joint_map.joints
+    F = keypoints.shape[0]
+    uv = torch.as_tensor(keypoints[:, :, kp_idx, :2], dtype=dt)  # [F, C, M, 2]
+    conf = keypoints[:, :, kp_idx, 2]
+    w = np.where(conf >= c.min_confidence, conf, 0.0) * inliers[:, kp_idx, :].transpose(0, 2, 1)  # [F, C, M]
+    w = torch.as_tensor(w, dtype=dt)
+    X = torch.as_tensor(np.nan_to_num(points[:, kp_idx]), dtype=dt)
+    wx = torch.as_tensor(np.isfinite(points[:, kp_idx]).all(-1), dtype=dt)  # [F, M]
+    Ks, Rs, Ts, ds = (torch.as_tensor(np.stack([getattr(cam, a) for cam in cameras]), dtype=dt)
+                      for a in ("K", "R", "T", "dist"))
+    rt = RigTensors(rig, dtype=dt)
+    if init is None:
+        rr0, rt0 = initial_root(rig, jt_idx, points[:, kp_idx])
+        pose0 = np.zeros((F, rig.pose_dim))
+    else:
+        pose0, rr0, rt0 = init
+    pose = torch.tensor(pose0, dtype=dt, requires_grad=True)
+    rr = torch.tensor(rr0, dtype=dt, requires_grad=True)
+    tr = torch.tensor(rt0, dtype=dt, requires_grad=True)
+    jt = torch.as_tensor(jt_idx)
+    norm2d = w.sum().clamp_min(1e-9)
+    norm3d = wx.sum().clamp_min(1e-9)
+    # 3D residuals in metres against reprojections in pixels: scale the 3D term to pixels with the mean focal length
+    f2 = float((Ks[:, 0, 0] * Ks[:, 1, 1]).mean()) / float(Ts[:, 2].abs().mean().clamp_min(0.5)) ** 2
+
+    def loss(with_pose: bool) -> Tensor:
+        J = pose_joints(rt, pose if with_pose else pose.detach(), rr, tr)[:, jt]  # [F, M, 3]
+        pix, z = _project(J, Ks, Rs, Ts, ds)
+        sq = ((pix - uv) ** 2).sum(-1)
+        l2d = (w * geman_mcclure(sq, c.sigma_px)).sum() / norm2d
+        l3d = (wx * geman_mcclure(((J - X) ** 2).sum(-1), c.sigma_m)).sum() / norm3d * f2 * c.w_3d
+        total = l2d + l3d
+        if F >= 3:
+            total = total + c.w_smooth * f2 * ((J[2:] - 2 * J[1:-1] + J[:-2]) ** 2).sum(-1).mean()
+        if with_pose:
+            total = total + c.w_pose * (pose ** 2).sum(-1).mean() + c.w_limit * (torch.relu(pose.abs() - c.limit) ** 2).sum(-1).mean()
+            if F >= 3:
+                total = total + c.w_smooth_pose * ((pose[2:] - 2 * pose[1:-1] + pose[:-2]) ** 2).sum(-1).mean()
+        return total
+
+    n = c.root_steps + c.steps
+    for stage, (params, steps) in enumerate((([rr, tr], c.root_steps), ([pose, rr, tr], c.steps))):
+        if steps <= 0:
+            continue
+        opt = torch.optim.Adam(params, lr=c.lr)
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=c.lr * 0.05)
+        for i in range(steps):
+            opt.zero_grad(set_to_none=True)
+            loss(stage == 1).backward()
+            opt.step()
+            sched.step()
+            if progress is not None:
+                progress(i + (c.root_steps if stage else 0), n)
+    with torch.no_grad():
+        J = pose_joints(rt, pose, rr, tr)[:, jt]
+        pix, _ = _project(J, Ks, Rs, Ts, ds)
+        err = ((pix - uv) ** 2).sum(-1).sqrt()  # [F, C, M]
+        used = w > 0
+        cnt = used.sum((1, 2))
+        rep = torch.where(cnt > 0, (err * used).sum((1, 2)) / cnt.clamp_min(1), torch.full_like(cnt, float("nan"), dtype=dt))
+    return {"pose": pose.detach().numpy().astype(np.float32), "root_rotation": rr.detach().numpy().astype(np.float32),
+            "root_translation": tr.detach().numpy().astype(np.float32), "reprojection_px": rep.numpy()}

@@ -1,0 +1,225 @@
+"""Body fit from multi-view keypoints: triangulation (closed form, one wrong view), the fit on a hand-made pose,
+the keypoint readers and every bad-input kind of ``avatar-prep fit-body``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gsavatar.data_schema.capture import Camera
+from gsavatar.fitting.fit import FitConfig, fit_sequence
+from gsavatar.fitting.keypoints import load_joint_map, read_keypoint_file, read_keypoints
+from gsavatar.fitting.synthetic import synthetic_keypoints, write_openpose
+from gsavatar.fitting.triangulate import dlt, normalized_coords, project_world, triangulate
+from gsavatar.geometry.camera import look_at
+from gsavatar.utils.errors import SchemaError
+
+
+def ring_cameras(n: int, radius: float = 3.0, size: int = 256, dist: bool = False) -> list[Camera]:
+    cams = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        eye = np.array([radius * np.sin(a), 1.0 + 0.3 * (i % 2), radius * np.cos(a)])
+        R, T = look_at(eye, np.array([0.0, 0.9, 0.0]))
+        K = np.array([[300.0, 0, size / 2], [0, 300.0, size / 2], [0, 0, 1]])
+        d = np.array([0.05, -0.01, 0.001, -0.001, 0.0]) if dist else np.zeros(5)
+        cams.append(Camera(f"cam{i:02d}", K, R, T, d, size, size))
+    return cams
+
+
+def pixels(X: np.ndarray, cams: list[Camera]) -> np.ndarray:
+    Ks, Rs, Ts, ds = (np.stack([getattr(c, a) for c in cams]) for a in ("K", "R", "T", "dist"))
+    return project_world(X, Ks, Rs, Ts, ds)[0]  # [N, C, 2]
+
+
+def test_dlt_two_views_closed_form():
+    cams = ring_cameras(2)
+    X = np.array([[0.1, 1.2, -0.3]])
+    uv = pixels(X, cams)
+    xy = np.stack([normalized_coords(uv[:, c], cams[c].K, None) for c in range(2)], 1)
+    P = np.stack([np.concatenate([c.R, c.T[:, None]], 1) for c in cams])
+    np.testing.assert_allclose(dlt(xy, np.ones((1, 2)), P), X, atol=1e-9)
+    assert np.isnan(dlt(xy, np.array([[1.0, 0.0]]), P)).all()  # one view: unset
+
+
+def test_triangulation_drops_the_one_wrong_view_with_distortion():
+    cams = ring_cameras(5, dist=True)
+    X = np.array([[0.0, 1.0, 0.1], [0.2, 0.5, -0.1]])
+    uv = pixels(X, cams)  # [2, 5, 2]
+    kp = np.zeros((1, 5, 2, 3))
+    kp[0, :, :, :2] = uv.transpose(1, 0, 2)
+    kp[0, :, :, 2] = 0.9
+    kp[0, 3, 0, :2] += [60.0, -45.0]  # view 3 disagrees on point 0, confidently
+    tri = triangulate(kp, cams)
+    np.testing.assert_allclose(tri.points[0], X, atol=1e-6)
+    assert tri.inliers[0, 0].tolist() == [True, True, True, False, True]
+    assert tri.inliers[0, 1].all()
+    assert tri.error_px[0].max() < 1e-4
+    # averaging it in would have moved the point: the plain DLT over all five views
+    xy = np.stack([normalized_coords(kp[0, c, :1, :2], cams[c].K, cams[c].dist) for c in range(5)], 1)
+    P = np.stack([np.concatenate([c.R, c.T[:, None]], 1) for c in cams])
+    assert np.linalg.norm(dlt(xy, np.ones((1, 5)), P)[0] - X[0]) > 0.01
+
+
+def arm_setup():
+    from tests.prep_fixtures import arm_rig
+
+    rig = arm_rig()
+    jmap = {"MidHip": ["Hips"], "Neck": ["Spine"], "LShoulder": ["LeftArm"], "LElbow": ["LeftForeArm"],
+            "LWrist": ["LeftHand"], "LBigToe": ["LeftFinger"]}
+    return rig, jmap
+
+
+def write_map(tmp_path: Path, joints: dict) -> Path:
+    from gsavatar.fitting.keypoints import resources
+
+    base = json.loads(resources.files("gsavatar.fitting").joinpath("maps", "body25.json").read_text())
+    p = tmp_path / "map.json"
+    p.write_text(json.dumps({**base, "joints": joints}))
+    return p
+
+
+def test_fit_recovers_a_hand_made_pose(tmp_path):
+    import torch
+
+    from gsavatar.geometry.lbs import pose_joints
+
+    rig, jmap = arm_setup()
+    jm = load_joint_map("body25", rig, write_map(tmp_path, jmap))
+    cams = ring_cameras(6)
+    F = 4
+    pose = np.zeros((F, rig.pose_dim))
+    names = [p.name for p in rig.params]
+    slot = {n: i for i, n in enumerate(names)}  # all euler except the axis-angle forearm (3 slots)
+    off = lambda n: sum(p.size for p in rig.params[: names.index(n)])  # noqa: E731
+    pose[:, off("Spine.rz")] = 0.3
+    pose[:, off("LeftArm.ry")] = np.linspace(0.2, 0.5, F)
+    pose[:, off("LeftForeArm.r") + 2] = np.linspace(0.4, 0.9, F)  # elbow bend
+    pose[:, off("LeftHand.rz")] = -0.3
+    assert slot
+    rr = np.tile([0.0, 0.4, 0.0], (F, 1))
+    tr = np.tile([0.1, 0.9, -0.2], (F, 1))
+    J = pose_joints(rig, *(torch.as_tensor(a, dtype=torch.float64) for a in (pose, rr, tr))).numpy()
+    kp = synthetic_keypoints(J, cams, jm, noise_px=0.0, outlier_fraction=0.0, drop_fraction=0.0)
+    tri = triangulate(kp, cams)
+    res = fit_sequence(rig, cams, kp, jm, tri.points, tri.inliers, FitConfig(w_pose=1e-4))
+    Jf = pose_joints(rig, *(torch.as_tensor(res[k], dtype=torch.float64)
+                            for k in ("pose", "root_rotation", "root_translation"))).numpy()
+    err_mm = 1000 * np.linalg.norm(Jf[:, jm.joints] - J[:, jm.joints], axis=-1)
+    assert err_mm.mean() < 3.0, err_mm
+    assert np.nanmax(res["reprojection_px"]) < 1.0
+
+
+def test_openpose_and_coco_wholebody_readers(tmp_path):
+    a = np.arange(75, dtype=float).reshape(25, 3) / 100
+    p = tmp_path / "00000003_keypoints.json"
+    weak = np.full(75, 0.01)
+    p.write_text(json.dumps({"people": [{"pose_keypoints_2d": weak.tolist()}, {"pose_keypoints_2d": a.ravel().tolist()}]}))
+    np.testing.assert_allclose(read_keypoint_file(p, "body25"), a)  # the more confident person
+    xy = np.random.default_rng(0).uniform(0, 100, (133, 2))
+    sc = np.linspace(0.1, 1, 133)
+    q = tmp_path / "c.json"
+    q.write_text(json.dumps([{"keypoints": xy.tolist(), "keypoint_scores": sc.tolist()}]))
+    np.testing.assert_allclose(read_keypoint_file(q, "coco_wholebody"), np.c_[xy, sc])
+    parts = {"keypoints": 17, "foot_kpts": 6, "face_kpts": 68, "lefthand_kpts": 21, "righthand_kpts": 21}
+    flat = np.c_[xy, sc]
+    ann, k = {}, 0
+    for key, n in parts.items():
+        ann[key] = flat[k : k + n].ravel().tolist()
+        k += n
+    r = tmp_path / "d.json"
+    r.write_text(json.dumps({"annotations": [ann]}))
+    np.testing.assert_allclose(read_keypoint_file(r, "coco_wholebody"), flat)
+    (tmp_path / "e.json").write_text(json.dumps({"people": []}))
+    assert read_keypoint_file(tmp_path / "e.json", "body25") is None
+
+
+@pytest.mark.parametrize("kind", ["count", "nan", "json", "negative", "not_openpose", "camera"])
+def test_bad_keypoint_files_name_the_file(tmp_path, kind):
+    root = tmp_path / "kp"
+    (root / "cam00").mkdir(parents=True)
+    f = root / "cam00" / "00000000_keypoints.json"
+    good = np.full((25, 3), 0.5)
+    body = {"people": [{"pose_keypoints_2d": good.ravel().tolist()}]}
+    if kind == "count":
+        body["people"][0]["pose_keypoints_2d"] = good[:20].ravel().tolist()
+    elif kind == "nan":
+        f.write_text(json.dumps(body).replace("0.5", "NaN", 1))
+    elif kind == "negative":
+        body["people"][0]["pose_keypoints_2d"][2] = -1.0
+    elif kind == "not_openpose":
+        body = {"persons": []}
+    elif kind == "camera":
+        (root / "cam99").mkdir()
+    if kind == "json":
+        f.write_text("{not json")
+    elif kind != "nan":
+        f.write_text(json.dumps(body))
+    with pytest.raises(SchemaError) as e:
+        read_keypoints(root, ["cam00"], [0], "body25")
+    assert ("cam99" if kind == "camera" else "00000000_keypoints.json") in str(e.value)
+
+
+# ----------------------------------------------------------------------------- the command
+@pytest.fixture(scope="module")
+def tiny_fit_inputs(tiny_capture, tmp_path_factory):
+    from gsavatar.data_schema import load_capture
+    from gsavatar.synth.render import pose_joint_positions
+
+    cap = load_capture(tiny_capture)
+    names = sorted(cap.cameras)
+    m = cap.motion
+    J = pose_joint_positions(cap.rig, m.pose, m.root_rotation, m.root_translation)
+    kp = synthetic_keypoints(J, [cap.cameras[n] for n in names], load_joint_map("body25", cap.rig), seed=1)
+    return cap, names, J, kp
+
+
+def run_fit(capture: Path, kp_dir: Path, out: Path, *extra: str) -> int:
+    from gsavatar.prep.cli import main
+
+    return main(["fit-body", "--capture", str(capture), "--keypoints", str(kp_dir), "--out", str(out),
+                 "--fit.steps", "300", "--fit.root-steps", "60", "--shard-frames", "6", *extra])
+
+
+def test_fit_body_writes_a_capture_that_prep_takes_and_resumes(tiny_capture, tiny_fit_inputs, tmp_path):
+    from gsavatar.data_schema import load_capture
+
+    cap, names, J, kp = tiny_fit_inputs
+    kp = kp.copy()
+    kp[:, 0] = 0.0  # camera 0 detects nobody: reported, not fatal
+    kp[5] = 0.0  # the person is missing in every view of frame 5: a recorded skip
+    kdir = tmp_path / "kp"
+    write_openpose(kdir, kp, names, list(range(cap.num_frames)))
+    out = tmp_path / "fitted"
+    assert run_fit(tiny_capture, kdir, out) == 0
+    fitted = load_capture(out)  # a valid capture v1
+    assert fitted.num_frames == cap.num_frames and sorted(fitted.cameras) == names
+    rep = json.loads((out / "fit" / "report.json").read_text())
+    assert rep["skipped_frames"] == [5]
+    assert rep["views_without_detections"][names[0]] == cap.num_frames
+    assert (out / "fit" / "overlay.png").is_file() and rep["reprojection_px"]["mean"] < 10.0  # 300 steps only
+    from gsavatar.synth.render import pose_joint_positions
+
+    m = fitted.motion
+    Jf = pose_joint_positions(fitted.rig, m.pose, m.root_rotation, m.root_translation)
+    jm = load_joint_map("body25", cap.rig)
+    assert 1000 * np.linalg.norm(Jf[:, jm.joints] - J[:, jm.joints], axis=-1).mean() < 40.0
+    before = {p: p.stat().st_mtime_ns for p in (out / "fit" / "shards").iterdir()}
+    assert run_fit(tiny_capture, kdir, out) == 0  # resumes: every shard reused
+    assert json.loads((out / "fit" / "report.json").read_text())["shards"]["reused"] == len(before)
+    assert {p: p.stat().st_mtime_ns for p in (out / "fit" / "shards").iterdir()} == before
+
+
+def test_fit_body_bad_inputs_exit_non_zero_and_write_nothing(tiny_capture, tiny_fit_inputs, tmp_path, capsys):
+    cap, names, _, kp = tiny_fit_inputs
+    out = tmp_path / "out"
+    assert run_fit(tiny_capture, tmp_path / "missing", out) != 0
+    assert "keypoint" in capsys.readouterr().err and not out.exists()
+    empty = tmp_path / "empty"
+    write_openpose(empty, np.zeros_like(kp), names, list(range(cap.num_frames)))
+    assert run_fit(tiny_capture, empty, out) != 0
+    assert "no detections" in capsys.readouterr().err and not out.exists()
+    assert run_fit(tiny_capture, empty, tiny_capture) != 0  # never over the input
