@@ -25,6 +25,7 @@ LAYERS: dict[str, int] = {
     "runs": 5,  # a trained run: config, checkpoints, load_run, render_views
     "prep": 6,
     "synth": 6,
+    "fitting": 6,  # body poses from multi-view 2D keypoints (avatar-prep fit-body)
     "importers": 6,  # real capture sources (SMPL-X bodies, THuman4.0/AvatarReX/ActorsHQ layouts)
     "train": 6,
     "drive": 7,
@@ -36,6 +37,8 @@ ALLOWED: dict[tuple[str, str], str] = {
         "`avatar-prep synth` registers the synthetic capture source's command; nothing else in prep sees synth",
     ("gsavatar.prep.cli", "gsavatar.importers.cli"):
         "`avatar-prep import` registers the real capture sources' command; nothing else in prep sees importers",
+    ("gsavatar.prep.cli", "gsavatar.fitting.cli"):
+        "`avatar-prep fit-body` registers the body fit's command; nothing else in prep sees fitting",
 }
 """Exceptions by (importer module, imported module), each with its reason."""
 

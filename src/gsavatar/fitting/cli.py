@@ -167,11 +167,14 @@ def overlay_picture(cap, cams, names, kp, tri, jm, res, frame: int, tile: int = 
     over each camera's image of ``frame``, tiled in a grid. -> [H, W, 3] float32 in [0, 1]"""
     import cv2
 
-    from gsavatar.synth.render import pose_joint_positions
+    import torch
+
+    from gsavatar.geometry.lbs import pose_joints
     from gsavatar.utils.io import read_image
 
-    J = pose_joint_positions(cap.rig, res["pose"][frame : frame + 1], res["root_rotation"][frame : frame + 1],
-                             res["root_translation"][frame : frame + 1])[0]
+    with torch.no_grad():
+        J = pose_joints(cap.rig, *(torch.as_tensor(res[k][frame : frame + 1], dtype=torch.float64)
+                                   for k in ("pose", "root_rotation", "root_translation")))[0].numpy()
     parents = cap.rig.parents()
     Ks, Rs, Ts, ds = (np.stack([getattr(c, a) for c in cams]).astype(np.float64) for a in ("K", "R", "T", "dist"))
     pix, _ = project_world(J, Ks, Rs, Ts, ds)  # [J, C, 2]
