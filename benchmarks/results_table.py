@@ -164,14 +164,16 @@ def capture_tables(label: str, runs: Path, image_scale: float, params: list[str]
     summaries = {r: run_summary(runs / r) for r in RUN_DIRS if (runs / r / "eval" / "metrics.json").exists()}
     lp = next((r[3]["lpips_net"] for r in rows if r[3].get("lpips_net")), "off")
     lines = [f"## {label}", "", f"Runs in `{runs}`. Held-out TEST frames (last 20% of the capture, novel poses and "
-             f"appearance states) seen from the held-out cameras, driven by `avatar-drive`; black background; "
-             f"LPIPS = {lp}.", "",
-             "| method | PSNR | PSNR (mask) | SSIM | LPIPS | temporal error | drive views/s |",
-             "|---|---|---|---|---|---|---|"]
+             f"appearance states) seen from the held-out cameras, driven by `avatar-drive`. Protocol `ours`: black "
+             f"background, LPIPS = {lp}; protocol `ag` (Animatable Gaussians / MMLPs): ground truth white outside its "
+             f"mask, full image (docs/train.md; its LPIPS needs `--ag-lpips on`, off on this CPU box).", "",
+             "| method | PSNR | PSNR (mask) | SSIM | LPIPS | PSNR (ag) | SSIM (ag) | temporal error | drive views/s |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    f = lambda m, k, fmt: format(m[k], fmt) if m.get(k) is not None else "-"  # noqa: E731
     for row_label, _, _, m in rows:
-        lpips = f"{m['lpips']:.4f}" if m.get("lpips") is not None else "-"
-        lines.append(f"| {row_label} | {m['psnr']:.2f} | {m['psnr_fg']:.2f} | {m['ssim']:.4f} | {lpips} | "
-                     f"{m['temporal_error']:.4f} | {m['fps_drive']:.2f} |")
+        lines.append(f"| {row_label} | {m['psnr']:.2f} | {m['psnr_fg']:.2f} | {m['ssim']:.4f} | {f(m, 'lpips', '.4f')} | "
+                     f"{f(m, 'ag_psnr', '.2f')} | {f(m, 'ag_ssim', '.4f')} | {m['temporal_error']:.4f} | "
+                     f"{m['fps_drive']:.2f} |")
     if summaries:
         lines += ["", "Training runs (`avatar-train eval`, encoder latents; held-out cameras; PSNR inside the mask). "
                   "*Latent gain*: test frames with the encoder's latents minus the same with the training frames' mean "
