@@ -66,6 +66,7 @@ def _instrument(times: dict[str, float]) -> None:
                 times[name] += dt - child
                 if stack:
                     stack[-1][0] += dt
+
         return wrapper
 
     for name, where in FORWARD_PARTS.items():
@@ -103,17 +104,28 @@ def measure(driver: Driver, motion, frames: int, warmup: int, sh0_only: bool, ti
         live.next(motion_inputs(motion, t % T), eye)
     total, cpu = time.perf_counter() - tic, time.process_time() - cpu
     av = driver.net.avatar
-    return {"fps": frames / total, "ms_per_frame": 1e3 * total / frames, "gaussians": av.num_gaussians,
-            "frames_per_cpu_s": frames / cpu,
-            "anchors": av.num_anchors, "hidden": list(av.config.hidden), "sh_degree": driver.sh_degree,
-            "parts_s": dict(live.timings), "forward_parts_s": dict(times), "total_s": total, "frames": frames}
+    return {
+        "fps": frames / total,
+        "ms_per_frame": 1e3 * total / frames,
+        "gaussians": av.num_gaussians,
+        "frames_per_cpu_s": frames / cpu,
+        "anchors": av.num_anchors,
+        "hidden": list(av.config.hidden),
+        "sh_degree": driver.sh_degree,
+        "parts_s": dict(live.timings),
+        "forward_parts_s": dict(times),
+        "total_s": total,
+        "frames": frames,
+    }
 
 
 def report(label: str, r: dict) -> None:
     total = r["total_s"]
-    print(f"\n{label}: {r['fps']:.1f} frames/s ({r['ms_per_frame']:.1f} ms/frame; {r['gaussians']} Gaussians, "
-          f"{r['anchors']} anchors, MLP {r['hidden']}, SH degree {r['sh_degree']}; {r['frames']} frames; "
-          f"{r['frames_per_cpu_s']:.1f} frames per CPU-second of the process, less disturbed by other jobs)")
+    print(
+        f"\n{label}: {r['fps']:.1f} frames/s ({r['ms_per_frame']:.1f} ms/frame; {r['gaussians']} Gaussians, "
+        f"{r['anchors']} anchors, MLP {r['hidden']}, SH degree {r['sh_degree']}; {r['frames']} frames; "
+        f"{r['frames_per_cpu_s']:.1f} frames per CPU-second of the process, less disturbed by other jobs)"
+    )
     p, f = r["parts_s"], r["forward_parts_s"]
     rows = [("predictor (latent source step)", p.get("predictor", 0.0)), ("avatar forward", p.get("avatar", 0.0))]
     rows += [("  " + k + (" (rest)" if k == "posing" else ""), f.get(k, 0.0)) for k in FORWARD_PARTS]
@@ -139,8 +151,12 @@ def paper_driver(dataset: Path, mode: str) -> Driver:
     net = build_net(scene, mcfg, 0).eval()
     net.avatar.pack_bases_()  # as load_run does on CPU
     pred = build_predictor(scene, PredictorConfig(), net.avatar.latent_in, mcfg.pca).eval()
-    return Driver(Path("<untrained paper>"), DriveConfig(mode=mode, device="cpu", cameras="orbit"),
-                  loaded=LoadedRun(net, scene, cfg, 0), predictor=pred)
+    return Driver(
+        Path("<untrained paper>"),
+        DriveConfig(mode=mode, device="cpu", cameras="orbit"),
+        loaded=LoadedRun(net, scene, cfg, 0),
+        predictor=pred,
+    )
 
 
 def main() -> None:
@@ -167,7 +183,9 @@ def main() -> None:
         dp = paper_driver(a.paper_dataset or Path(d.scene.dataset), a.mode)
         results["paper"] = measure(dp, motion, max(a.frames // 4, 5), 2, a.sh0_only, times)
         report("preset paper (untrained)", results["paper"])
-    print(f"\ntorch threads {results['threads']}; load average {' '.join(f'{x:.2f}' for x in __import__('os').getloadavg())}")
+    print(
+        f"\ntorch threads {results['threads']}; load average {' '.join(f'{x:.2f}' for x in __import__('os').getloadavg())}"
+    )
     if a.json:
         a.json.write_text(json.dumps(results, indent=1))
 

@@ -59,8 +59,9 @@ def _albedo(p: np.ndarray) -> np.ndarray:
     return np.stack([r, g, b], -1)
 
 
-def builtin_scene(work: Path, n_views: int, img: int, frames: int, uv_cache: Path, height: int | None = None,
-                  ext: str = ".png"):
+def builtin_scene(
+    work: Path, n_views: int, img: int, frames: int, uv_cache: Path, height: int | None = None, ext: str = ".png"
+):
     """``n_views`` cameras of ``img`` x ``height`` (default square) pixels; images stored as ``ext`` (.png/.jpg)."""
     from gsavatar.data_schema.template import Template
     from gsavatar.utils.io import write_image
@@ -159,10 +160,26 @@ def project_parts(proj: UVProjector, vertices: np.ndarray, views: list, reps: in
         "project": lambda: proj.project(vertices, views),
         "ctx": lambda: [proj._view_ctx(v, 0, keep_uint8=True, quad=True, slot=i) for i, v in enumerate(views)],
         "setup": lambda: proj._zbuffer_views(vertices, views, 0),
-        "kernel": lambda: zb.project_frame(zf.P, zf.Nrm, proj._z_tri, proj.faces, np.stack(zf.cams), List(zf.imgs),
-                                           zf.imgs[0].dtype == np.uint8, True, List(zf.tri_ids), List(zf.planes),
-                                           float(cfg.occlusion_eps), float(cfg.min_cos), cfg.fusion == "median_band",
-                                           float(cfg.band[0]), float(cfg.band[1]), BLOCK, proj._z_texels, *out),
+        "kernel": lambda: zb.project_frame(
+            zf.P,
+            zf.Nrm,
+            proj._z_tri,
+            proj.faces,
+            np.stack(zf.cams),
+            List(zf.imgs),
+            zf.imgs[0].dtype == np.uint8,
+            True,
+            List(zf.tri_ids),
+            List(zf.planes),
+            float(cfg.occlusion_eps),
+            float(cfg.min_cos),
+            cfg.fusion == "median_band",
+            float(cfg.band[0]),
+            float(cfg.band[1]),
+            BLOCK,
+            proj._z_texels,
+            *out,
+        ),
     }
     ts: dict[str, list[float]] = {k: [] for k in parts}
     for fn in parts.values():
@@ -173,13 +190,20 @@ def project_parts(proj: UVProjector, vertices: np.ndarray, views: list, reps: in
             fn()
             ts[k].append(time.perf_counter() - t0)
     m = {k: float(np.median(v)) for k, v in ts.items()}
-    return {"project": m["project"], "RGBA region buffers": m["ctx"], "surface + rasterization": m["setup"] - m["ctx"],
-            "sampling + fusion kernel": m["kernel"], "rest": m["project"] - m["setup"] - m["kernel"]}
+    return {
+        "project": m["project"],
+        "RGBA region buffers": m["ctx"],
+        "surface + rasterization": m["setup"] - m["ctx"],
+        "sampling + fusion kernel": m["kernel"],
+        "rest": m["project"] - m["setup"] - m["kernel"],
+    }
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--capture", type=Path, help="synthetic capture directory (with gt/textures); default: built-in scene")
+    ap.add_argument(
+        "--capture", type=Path, help="synthetic capture directory (with gt/textures); default: built-in scene"
+    )
     ap.add_argument("--frames", type=int, nargs="+", help="frames to project (default: first 2 train frames / 0 1)")
     ap.add_argument("--cams", nargs="+", help="cameras (default: all)")
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024])
@@ -187,15 +211,30 @@ def main() -> None:
     ap.add_argument("--img", type=int, default=1024, help="built-in scene: image width (and height unless --height)")
     ap.add_argument("--height", type=int, default=0, help="built-in scene: image height (0 = --img)")
     ap.add_argument("--jpeg", action="store_true", help="built-in scene: JPEG images (masks stay PNG)")
-    ap.add_argument("--thuman4", action="store_true", help="built-in scene of THuman4.0's size: 24 views of 1330x1150 JPEG")
+    ap.add_argument(
+        "--thuman4", action="store_true", help="built-in scene of THuman4.0's size: 24 views of 1330x1150 JPEG"
+    )
     ap.add_argument("--no-mean", action="store_true", help="skip the 'mean' fusion comparison")
     ap.add_argument("--no-parts", action="store_true", help="skip the per-part timing of one frame's projection")
-    ap.add_argument("--no-stage-loop", action="store_true",
-                    help="skip timing the stage's read + project loop with and without reading the next frame ahead")
-    ap.add_argument("--visibility", nargs="+", default=["zbuffer"], choices=["zbuffer", "rays"],
-                    help="visibility paths to time (ProjectConfig.visibility)")
-    ap.add_argument("--threads", type=int, nargs="+", default=[1],
-                    help="numba threads of the z-buffer path (torch.set_num_threads; the rays path ignores it)")
+    ap.add_argument(
+        "--no-stage-loop",
+        action="store_true",
+        help="skip timing the stage's read + project loop with and without reading the next frame ahead",
+    )
+    ap.add_argument(
+        "--visibility",
+        nargs="+",
+        default=["zbuffer"],
+        choices=["zbuffer", "rays"],
+        help="visibility paths to time (ProjectConfig.visibility)",
+    )
+    ap.add_argument(
+        "--threads",
+        type=int,
+        nargs="+",
+        default=[1],
+        help="numba threads of the z-buffer path (torch.set_num_threads; the rays path ignores it)",
+    )
     ap.add_argument("--json", type=Path, default=None, help="also write the table (and decode/reader times) as JSON")
     ap.add_argument("--uv-cache", type=Path, default=Path(tempfile.gettempdir()) / "gsavatar_uv_cache")
     args = ap.parse_args()
@@ -218,11 +257,14 @@ def main() -> None:
         n = max(args.frames) + 1 if args.frames else 2
         frames = args.frames or [0, 1]
         t0 = time.perf_counter()
-        cap, posed_all = builtin_scene(Path(tmp.name), args.views, args.img, n, args.uv_cache, args.height or None,
-                                       ".jpg" if args.jpeg else ".png")
+        cap, posed_all = builtin_scene(
+            Path(tmp.name), args.views, args.img, n, args.uv_cache, args.height or None, ".jpg" if args.jpeg else ".png"
+        )
         posed = [posed_all[f] for f in frames]
-        src = (f"built-in ellipsoid scene ({args.views} views {args.img}x{args.height or args.img} "
-               f"{'JPEG' if args.jpeg else 'PNG'}, rendered in {time.perf_counter() - t0:.1f} s)")
+        src = (
+            f"built-in ellipsoid scene ({args.views} views {args.img}x{args.height or args.img} "
+            f"{'JPEG' if args.jpeg else 'PNG'}, rendered in {time.perf_counter() - t0:.1f} s)"
+        )
     cams = args.cams or list(cap.cameras)
     template = cap.template
     print(f"# bench_project_uv: {src}; {len(template.faces)} triangles, {len(cams)} views, frames {frames}")
@@ -246,8 +288,10 @@ def main() -> None:
             assert cv2.imread(str(cap.mask_path(c, f)), cv2.IMREAD_UNCHANGED) is not None
         raw_s.append(time.perf_counter() - t0)
     raw = float(np.mean(raw_s))
-    print(f"# decode per frame: {raw:.3f} s raw (cv2.imread of {len(cams)} images + masks), {io:.3f} s through "
-          f"gsavatar's readers (8-bit images kept as uint8 as the stage does, mask decoding and checks)")
+    print(
+        f"# decode per frame: {raw:.3f} s raw (cv2.imread of {len(cams)} images + masks), {io:.3f} s through "
+        f"gsavatar's readers (8-bit images kept as uint8 as the stage does, mask decoding and checks)"
+    )
 
     def raw_decode(f: int) -> float:
         t0 = time.perf_counter()
@@ -264,9 +308,11 @@ def main() -> None:
         t0 = time.perf_counter()
         tm = build_texel_map(template, size=size, gutter=ProjectConfig().gutter_px)
         t_map = time.perf_counter() - t0
-        gt_of = {f: builtin_gt(template, tm) if args.capture is None else capture_gt(args.capture, f, size) for f in frames}
+        gt_of = {
+            f: builtin_gt(template, tm) if args.capture is None else capture_gt(args.capture, f, size) for f in frames
+        }
         for vis in args.visibility:
-            for nth in (args.threads if vis == "zbuffer" else [1]):
+            for nth in args.threads if vis == "zbuffer" else [1]:
                 torch.set_num_threads(nth)
                 cfg = ProjectConfig(tex_size=size, visibility=vis)
                 proj = UVProjector(template.faces, tm, cfg, template.face_uv_mask)
@@ -286,8 +332,22 @@ def main() -> None:
                         fm = proj_mean.project(V, views_of[f], frame=f)
                         p_mean.append(psnr(fm.texture[m], gt[m]))
                 s, d = float(np.mean(secs)), float(np.mean(decs))
-                rows.append((size, vis, nth if vis == "zbuffer" else 1, t_map, proj.num_texels, s, d, io, proj.num_texels / s,
-                             float(np.mean(seen2)), float(np.mean(p_med)), float(np.mean(p_mean)) if p_mean else float("nan")))
+                rows.append(
+                    (
+                        size,
+                        vis,
+                        nth if vis == "zbuffer" else 1,
+                        t_map,
+                        proj.num_texels,
+                        s,
+                        d,
+                        io,
+                        proj.num_texels / s,
+                        float(np.mean(seen2)),
+                        float(np.mean(p_med)),
+                        float(np.mean(p_mean)) if p_mean else float("nan"),
+                    )
+                )
     # the stage's loop (read a frame, project it), with the next frame read in a background thread or not;
     # largest size, z-buffer path, each thread count; 3 alternating repeats, medians
     stage = None
@@ -310,10 +370,19 @@ def main() -> None:
         print(f"\n# the stage's loop at {size}^2 over frames {frames} (median of 3, alternating):")
         for nth in args.threads:
             seq, pre = float(np.median(loop_s[nth, False])), float(np.median(loop_s[nth, True]))
-            stage.append({"tex_size": size, "threads": nth, "read_then_project_s_per_frame": seq,
-                          "prefetched_s_per_frame": pre, "speedup": seq / pre})
-            print(f"#   {nth} thread(s): read then project {seq:.3f} s/frame, next frame read meanwhile {pre:.3f} s/frame "
-                  f"({seq / pre:.2f}x)")
+            stage.append(
+                {
+                    "tex_size": size,
+                    "threads": nth,
+                    "read_then_project_s_per_frame": seq,
+                    "prefetched_s_per_frame": pre,
+                    "speedup": seq / pre,
+                }
+            )
+            print(
+                f"#   {nth} thread(s): read then project {seq:.3f} s/frame, next frame read meanwhile {pre:.3f} s/frame "
+                f"({seq / pre:.2f}x)"
+            )
     parts = None
     if "zbuffer" in args.visibility and not args.no_parts:
         size = max(args.sizes)
@@ -321,26 +390,49 @@ def main() -> None:
         tm = build_texel_map(template, size=size, gutter=ProjectConfig().gutter_px)
         proj = UVProjector(template.faces, tm, ProjectConfig(tex_size=size), template.face_uv_mask)
         parts = project_parts(proj, posed[-1], views_of[frames[-1]])
-        print(f"\n# where one frame's projection goes at {size}^2, {min(args.threads)} thread(s) (medians of 7): "
-              + ", ".join(f"{k} {v:.3f} s" for k, v in parts.items()))
+        print(
+            f"\n# where one frame's projection goes at {size}^2, {min(args.threads)} thread(s) (medians of 7): "
+            + ", ".join(f"{k} {v:.3f} s" for k, v in parts.items())
+        )
     torch.set_num_threads(threads0)
 
     print()
-    print("| tex size | visibility | threads | texel map (s, once) | texels projected | project s/frame | raw decode s/frame "
-          "| **project / raw decode** | read s/frame | project / read | texels/s | seen>=2 | PSNR median_band (dB) | PSNR mean (dB) |")
+    print(
+        "| tex size | visibility | threads | texel map (s, once) | texels projected | project s/frame | raw decode s/frame "
+        "| **project / raw decode** | read s/frame | project / read | texels/s | seen>=2 | PSNR median_band (dB) | PSNR mean (dB) |"
+    )
     print("|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for size, vis, nth, t_map, n, s, d, io_, tps, s2, pm, pmean in rows:
-        print(f"| {size} | {vis} | {nth} | {t_map:.2f} | {n:,} | {s:.3f} | {d:.3f} | **{s / d:.2f}** | {io_:.3f} | {s / io_:.2f} | "
-              f"{tps / 1e6:.2f} M | {100 * s2:.0f} % | {pm:.2f} | {pmean:.2f} |")
+        print(
+            f"| {size} | {vis} | {nth} | {t_map:.2f} | {n:,} | {s:.3f} | {d:.3f} | **{s / d:.2f}** | {io_:.3f} | {s / io_:.2f} | "
+            f"{tps / 1e6:.2f} M | {100 * s2:.0f} % | {pm:.2f} | {pmean:.2f} |"
+        )
     if args.json is not None:
         import json
 
-        keys = ("tex_size", "visibility", "threads", "texel_map_s", "texels", "project_s_per_frame", "raw_decode_s_per_frame",
-                "read_s_per_frame", "texels_per_s", "seen_ge2_fraction", "psnr_median_band_db", "psnr_mean_db")
-        out = {"source": src, "machine": f"{platform.processor() or platform.machine()}, python {platform.python_version()}",
-               "frames": list(map(int, frames)), "views": len(cams),
-               "rows": [{**dict(zip(keys, r)), "project_over_raw_decode": r[5] / r[6]} for r in rows],
-               "stage_loop": stage, "parts_s": parts}
+        keys = (
+            "tex_size",
+            "visibility",
+            "threads",
+            "texel_map_s",
+            "texels",
+            "project_s_per_frame",
+            "raw_decode_s_per_frame",
+            "read_s_per_frame",
+            "texels_per_s",
+            "seen_ge2_fraction",
+            "psnr_median_band_db",
+            "psnr_mean_db",
+        )
+        out = {
+            "source": src,
+            "machine": f"{platform.processor() or platform.machine()}, python {platform.python_version()}",
+            "frames": list(map(int, frames)),
+            "views": len(cams),
+            "rows": [{**dict(zip(keys, r)), "project_over_raw_decode": r[5] / r[6]} for r in rows],
+            "stage_loop": stage,
+            "parts_s": parts,
+        }
         args.json.write_text(json.dumps(out, indent=1, default=float, allow_nan=True))
     if tmp is not None:
         tmp.cleanup()

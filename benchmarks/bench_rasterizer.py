@@ -94,8 +94,17 @@ def time_step(n: int, res: int, n_cams: int, repeats: int) -> dict:
 
     def render():
         return rasterize(
-            params["means"], params["quats"], params["scales"], params["opacities"],
-            params["colors"], viewmats, Ks, res, res, bg, backend="torch",
+            params["means"],
+            params["quats"],
+            params["scales"],
+            params["opacities"],
+            params["colors"],
+            viewmats,
+            Ks,
+            res,
+            res,
+            bg,
+            backend="torch",
         )
 
     out = render()  # warm-up (allocator, lazy init)
@@ -113,8 +122,11 @@ def time_step(n: int, res: int, n_cams: int, repeats: int) -> dict:
         cpu.append(time.process_time() - c0)
     med = lambda xs: 1e3 * sorted(xs)[len(xs) // 2]  # noqa: E731
     return {
-        "fwd_min": 1e3 * min(fwd), "full_min": 1e3 * min(full), "full_med": med(full),
-        "cpu_med": med(cpu), "stats": out.meta["stats"],
+        "fwd_min": 1e3 * min(fwd),
+        "full_min": 1e3 * min(full),
+        "full_med": med(full),
+        "cpu_med": med(cpu),
+        "stats": out.meta["stats"],
     }
 
 
@@ -130,19 +142,26 @@ def main() -> None:
         torch.set_num_threads(args.threads)
 
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-    print(f"machine: {platform.platform()}, {platform.machine()}, {os.cpu_count()} cpus, "
-          f"torch {torch.__version__}, torch threads {torch.get_num_threads()}, "
-          f"cameras per render {args.cameras}, load average before run {load}")
+    print(
+        f"machine: {platform.platform()}, {platform.machine()}, {os.cpu_count()} cpus, "
+        f"torch {torch.__version__}, torch threads {torch.get_num_threads()}, "
+        f"cameras per render {args.cameras}, load average before run {load}"
+    )
     print()
-    print("| Gaussians | resolution | fwd ms (min) | fwd+bwd ms (min) | fwd+bwd ms (median) "
-          "| fwd+bwd CPU ms (median) | candidates | contributing |")
+    print(
+        "| Gaussians | resolution | fwd ms (min) | fwd+bwd ms (min) | fwd+bwd ms (median) "
+        "| fwd+bwd CPU ms (median) | candidates | contributing |"
+    )
     print("|---:|---:|---:|---:|---:|---:|---:|---:|")
     for n in args.gaussians:
         for res in args.resolutions:
             r = time_step(n, res, args.cameras, args.repeats)
             st = r["stats"]
-            print(f"| {n} | {res}x{res} | {r['fwd_min']:.0f} | {r['full_min']:.0f} | {r['full_med']:.0f} "
-                  f"| {r['cpu_med']:.0f} | {st.n_candidates:,} | {st.n_contributing:,} |", flush=True)
+            print(
+                f"| {n} | {res}x{res} | {r['fwd_min']:.0f} | {r['full_min']:.0f} | {r['full_med']:.0f} "
+                f"| {r['cpu_med']:.0f} | {st.n_candidates:,} | {st.n_contributing:,} |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

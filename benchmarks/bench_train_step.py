@@ -54,8 +54,15 @@ print(json.dumps({"steps_per_s": a["steps"] / dt, "cpu_steps_per_s": a["steps"] 
 def measure(src: Path, args: argparse.Namespace) -> tuple[float, float]:
     """(steps per wall-clock second, steps per CPU second of the process)"""
     env = {**os.environ, "PYTHONPATH": str(src), "OMP_NUM_THREADS": str(args.threads)}
-    payload = json.dumps({"dataset": str(args.dataset), "preset": args.preset, "steps": args.steps,
-                          "warmup": args.warmup, "cold": args.cold})
+    payload = json.dumps(
+        {
+            "dataset": str(args.dataset),
+            "preset": args.preset,
+            "steps": args.steps,
+            "warmup": args.warmup,
+            "cold": args.cold,
+        }
+    )
     r = subprocess.run([sys.executable, "-c", CHILD, payload], env=env, capture_output=True, text=True)
     if r.returncode != 0:
         raise SystemExit(f"benchmark child failed ({src}):\n{r.stderr[-3000:]}")
@@ -78,24 +85,42 @@ def main() -> None:
     repo = Path(__file__).resolve().parents[1]
     with tempfile.TemporaryDirectory(prefix="bench_base_") as tmp:
         wt = Path(tmp) / "base"
-        subprocess.run(["git", "-C", str(repo), "worktree", "add", "--detach", str(wt), args.baseline], check=True,
-                       capture_output=True)
+        subprocess.run(
+            ["git", "-C", str(repo), "worktree", "add", "--detach", str(wt), args.baseline],
+            check=True,
+            capture_output=True,
+        )
         try:
             old, new = [], []
             for i in range(args.repeats):
                 old.append(measure(wt / "src", args))
-                print(f"[bench] old ({args.baseline}) run {i}: {old[-1][0]:.3f} steps/s, "
-                      f"{old[-1][1]:.3f} steps per CPU-second", flush=True)
+                print(
+                    f"[bench] old ({args.baseline}) run {i}: {old[-1][0]:.3f} steps/s, "
+                    f"{old[-1][1]:.3f} steps per CPU-second",
+                    flush=True,
+                )
                 new.append(measure(repo / "src", args))
-                print(f"[bench] new (working tree) run {i}: {new[-1][0]:.3f} steps/s, "
-                      f"{new[-1][1]:.3f} steps per CPU-second", flush=True)
+                print(
+                    f"[bench] new (working tree) run {i}: {new[-1][0]:.3f} steps/s, "
+                    f"{new[-1][1]:.3f} steps per CPU-second",
+                    flush=True,
+                )
         finally:
             subprocess.run(["git", "-C", str(repo), "worktree", "remove", "--force", str(wt)], capture_output=True)
     med = [[statistics.median(r[k] for r in runs) for k in (0, 1)] for runs in (old, new)]
-    res = {"preset": args.preset, "threads": args.threads, "steps": args.steps, "baseline": args.baseline,
-           "old_steps_per_s": med[0][0], "new_steps_per_s": med[1][0], "ratio": med[1][0] / med[0][0],
-           "old_steps_per_cpu_s": med[0][1], "new_steps_per_cpu_s": med[1][1], "cpu_ratio": med[1][1] / med[0][1],
-           "cache": "cold" if args.cold else "warm"}
+    res = {
+        "preset": args.preset,
+        "threads": args.threads,
+        "steps": args.steps,
+        "baseline": args.baseline,
+        "old_steps_per_s": med[0][0],
+        "new_steps_per_s": med[1][0],
+        "ratio": med[1][0] / med[0][0],
+        "old_steps_per_cpu_s": med[0][1],
+        "new_steps_per_cpu_s": med[1][1],
+        "cpu_ratio": med[1][1] / med[0][1],
+        "cache": "cold" if args.cold else "warm",
+    }
     print(json.dumps(res))
     if args.json:
         args.json.write_text(json.dumps(res, indent=1) + "\n")

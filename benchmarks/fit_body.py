@@ -49,14 +49,20 @@ def errors(cap, fitted, jm) -> dict:
     parents = cap.rig.parents()
     seen = set(int(j) for j in jm.joints)
     constrained = sorted({int(parents[j]) for j in seen if parents[j] >= 0})  # a joint whose child is observed
-    root = geodesic(axis_angle_to_matrix(d(m0.root_rotation)).numpy(), axis_angle_to_matrix(d(m1.root_rotation)).numpy())
+    root = geodesic(
+        axis_angle_to_matrix(d(m0.root_rotation)).numpy(), axis_angle_to_matrix(d(m1.root_rotation)).numpy()
+    )
     local = geodesic(L0[:, constrained], L1[:, constrained])
-    return {"mpjpe_mapped_mm": float(e[:, jm.joints].mean()), "mpjpe_mapped_p95_mm": float(np.percentile(e[:, jm.joints], 95)),
-            "mpjpe_all_mm": float(e.mean()), "root_rotation_deg": float(np.degrees(root).mean()),
-            "root_translation_mm": float(1000 * np.linalg.norm(m1.root_translation - m0.root_translation, axis=-1).mean()),
-            "local_rotation_deg": float(np.degrees(local).mean()),
-            "local_rotation_joints": [cap.rig.joints[j].name for j in constrained],
-            "note": "local rotations include the twist about the bone, which joint positions do not determine"}
+    return {
+        "mpjpe_mapped_mm": float(e[:, jm.joints].mean()),
+        "mpjpe_mapped_p95_mm": float(np.percentile(e[:, jm.joints], 95)),
+        "mpjpe_all_mm": float(e.mean()),
+        "root_rotation_deg": float(np.degrees(root).mean()),
+        "root_translation_mm": float(1000 * np.linalg.norm(m1.root_translation - m0.root_translation, axis=-1).mean()),
+        "local_rotation_deg": float(np.degrees(local).mean()),
+        "local_rotation_joints": [cap.rig.joints[j].name for j in constrained],
+        "note": "local rotations include the twist about the bone, which joint positions do not determine",
+    }
 
 
 def scaling(cap, jm, frames: list[int], views: list[int], seed: int = 0) -> list[dict]:
@@ -80,8 +86,16 @@ def scaling(cap, jm, frames: list[int], views: list[int], seed: int = 0) -> list
             t2 = time.perf_counter()
             Jf = pose_joint_positions(cap.rig, res["pose"], res["root_rotation"], res["root_translation"])
             err = float(1000 * np.linalg.norm(Jf[:, jm.joints] - J[:F, jm.joints], axis=-1).mean())
-            rows.append({"views": C, "frames": F, "triangulation_s": round(t1 - t0, 3), "fit_s": round(t2 - t1, 2),
-                         "fit_s_per_frame": round((t2 - t1) / F, 4), "mpjpe_mapped_mm": round(err, 2)})
+            rows.append(
+                {
+                    "views": C,
+                    "frames": F,
+                    "triangulation_s": round(t1 - t0, 3),
+                    "fit_s": round(t2 - t1, 2),
+                    "fit_s_per_frame": round((t2 - t1) / F, 4),
+                    "mpjpe_mapped_mm": round(err, 2),
+                }
+            )
             print(json.dumps(rows[-1]), flush=True)
     return rows
 
@@ -100,7 +114,9 @@ def train_compare(true_cap: Path, fitted_cap: Path, work: Path) -> dict:
             raise SystemExit(f"avatar-train failed on {ds}")
         m = json.loads((run / "eval" / "metrics.json").read_text())
         out[name] = {k: m["test_frames_heldout_cams"][k] for k in ("psnr", "psnr_fg", "ssim")} | {
-            "train_psnr_fg": m["train_frames_heldout_cams"]["psnr_fg"], "seconds": round(time.perf_counter() - t0, 1)}
+            "train_psnr_fg": m["train_frames_heldout_cams"]["psnr_fg"],
+            "seconds": round(time.perf_counter() - t0, 1),
+        }
     out["psnr_fg_difference_db"] = out["fitted_poses"]["psnr_fg"] - out["true_poses"]["psnr_fg"]
     return out
 
@@ -129,20 +145,28 @@ def main() -> None:
     kdir, fitted = a.work / "keypoints", a.work / "fitted"
     if not kdir.exists():
         J = pose_joint_positions(cap.rig, m.pose, m.root_rotation, m.root_translation)
-        write_openpose(kdir, synthetic_keypoints(J, [cap.cameras[n] for n in names], jm), names, list(range(cap.num_frames)))
+        write_openpose(
+            kdir, synthetic_keypoints(J, [cap.cameras[n] for n in names], jm), names, list(range(cap.num_frames))
+        )
     t0 = time.perf_counter()
     if prep(["fit-body", "--capture", str(a.capture), "--keypoints", str(kdir), "--out", str(fitted)]) != 0:
         raise SystemExit("fit-body failed")
     wall = time.perf_counter() - t0
     report = json.loads((fitted / "fit" / "report.json").read_text())
-    res = {"command": "PYTHONPATH=src OMP_NUM_THREADS=1 .venv/bin/python benchmarks/fit_body.py " + " ".join(
-               f"--{k.replace('_', '-')} {v}" for k, v in (("capture", a.capture), ("work", a.work))) + (" --train" if a.train else ""),
-           "machine": f"{platform.system()} {platform.machine()}, CPU only, torch {torch.__version__}, "
-                      f"{torch.get_num_threads()} thread(s)",
-           "keypoints": {"noise_px": 2.0, "outlier_fraction": 0.1, "drop_fraction": 0.2, "format": "body25"},
-           "capture": str(a.capture), "frames": cap.num_frames, "views": len(names),
-           "fit_body_wall_s": round(wall, 1), "report": {k: report[k] for k in ("reprojection_px", "inliers", "seconds", "shards")},
-           "errors": errors(cap, load_capture(fitted), jm)}
+    res = {
+        "command": "PYTHONPATH=src OMP_NUM_THREADS=1 .venv/bin/python benchmarks/fit_body.py "
+        + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in (("capture", a.capture), ("work", a.work)))
+        + (" --train" if a.train else ""),
+        "machine": f"{platform.system()} {platform.machine()}, CPU only, torch {torch.__version__}, "
+        f"{torch.get_num_threads()} thread(s)",
+        "keypoints": {"noise_px": 2.0, "outlier_fraction": 0.1, "drop_fraction": 0.2, "format": "body25"},
+        "capture": str(a.capture),
+        "frames": cap.num_frames,
+        "views": len(names),
+        "fit_body_wall_s": round(wall, 1),
+        "report": {k: report[k] for k in ("reprojection_px", "inliers", "seconds", "shards")},
+        "errors": errors(cap, load_capture(fitted), jm),
+    }
     res["report"]["reprojection_px"] = {k: v for k, v in res["report"]["reprojection_px"].items() if k != "per_frame"}
     print(json.dumps(res["errors"]), flush=True)
     if not a.no_scaling:

@@ -52,8 +52,12 @@ def environment() -> dict:
     }
     if torch.cuda.is_available():
         p = torch.cuda.get_device_properties(0)
-        info.update(device=torch.cuda.get_device_name(0), capability=list(torch.cuda.get_device_capability(0)),
-                    device_memory_gib=round(p.total_memory / 2**30, 1), device_count=torch.cuda.device_count())
+        info.update(
+            device=torch.cuda.get_device_name(0),
+            capability=list(torch.cuda.get_device_capability(0)),
+            device_memory_gib=round(p.total_memory / 2**30, 1),
+            device_count=torch.cuda.device_count(),
+        )
     try:
         import importlib.metadata as md
 
@@ -85,8 +89,13 @@ def train_rate(metrics_jsonl: Path) -> dict:
     if not pts:
         return {"steps": 0}
     (s0, t0), (s1, t1) = pts[0], pts[-1]
-    out = {"steps": s1, "seconds": round(t1, 3), "iterations_per_s": round(s1 / t1, 3),
-           "first_logged_step": s0, "final_loss": lines[-1].get("total")}
+    out = {
+        "steps": s1,
+        "seconds": round(t1, 3),
+        "iterations_per_s": round(s1 / t1, 3),
+        "first_logged_step": s0,
+        "final_loss": lines[-1].get("total"),
+    }
     if s1 > s0 and t1 > t0:
         out["steady_iterations_per_s"] = round((s1 - s0) / (t1 - t0), 3)
     return out
@@ -118,11 +127,18 @@ def drive_bench(run: Path, motion: Path, frames: int, size: int, views: int, dev
             if n >= frames:
                 break
     timed = n - len(first)
-    return {"mode": "predictor", "frames": n, "timed_frames": timed, "motion_frames": m.num_frames,
-            "cameras": views, "image_size": size, "device": str(d.device),
-            "frames_per_s": round(timed / steady, 3) if steady > 0 else None,
-            "first_frame_seconds": [round(x, 3) for x in first],
-            "cuda_max_memory_gib": round(torch.cuda.max_memory_allocated() / 2**30, 2) if d.device.type == "cuda" else None}
+    return {
+        "mode": "predictor",
+        "frames": n,
+        "timed_frames": timed,
+        "motion_frames": m.num_frames,
+        "cameras": views,
+        "image_size": size,
+        "device": str(d.device),
+        "frames_per_s": round(timed / steady, 3) if steady > 0 else None,
+        "first_frame_seconds": [round(x, 3) for x in first],
+        "cuda_max_memory_gib": round(torch.cuda.max_memory_allocated() / 2**30, 2) if d.device.type == "cuda" else None,
+    }
 
 
 def junit_summary(xml_path: Path) -> dict:
@@ -193,8 +209,11 @@ def summarize(work: Path, out: Path, mode: str, timings: Path) -> dict:
     if drive_json.exists():  # avatar-drive: includes mp4 encoding and the first frame
         d = json.loads(drive_json.read_text())
         summary["drive_cli"] = {
-            "mode": d.get("mode"), "frames": d.get("frames"), "cameras": len(d.get("cameras") or []),
-            "image_size": (d.get("config") or {}).get("orbit_size"), "seconds": d.get("seconds"),
+            "mode": d.get("mode"),
+            "frames": d.get("frames"),
+            "cameras": len(d.get("cameras") or []),
+            "image_size": (d.get("config") or {}).get("orbit_size"),
+            "seconds": d.get("seconds"),
             "frames_per_s": round(d["frames"] / d["seconds"], 3) if d.get("seconds") else None,
         }
     out.mkdir(parents=True, exist_ok=True)
@@ -206,24 +225,35 @@ def summarize(work: Path, out: Path, mode: str, timings: Path) -> dict:
 def markdown(s: dict) -> str:
     env = s["environment"]
     dev = env.get("device", "?")
-    lines = [f"# gpu_check ({s['mode']})", "",
-             f"device: {dev}; torch {env.get('torch')} (CUDA {env.get('torch_cuda')}); gsplat {env.get('gsplat')}; "
-             f"python {env.get('python')}; {env.get('cpu_count')} CPUs", ""]
+    lines = [
+        f"# gpu_check ({s['mode']})",
+        "",
+        f"device: {dev}; torch {env.get('torch')} (CUDA {env.get('torch_cuda')}); gsplat {env.get('gsplat')}; "
+        f"python {env.get('python')}; {env.get('cpu_count')} CPUs",
+        "",
+    ]
     rt = s.get("rasterize_tests")
     if rt:
         cuda = rt["cases"].get("test_torch_backend_matches_gsplat_cuda", "not run")
-        lines += [f"tests/render/test_rasterize.py: {rt['passed']} passed, {rt['failed']} failed, "
-                  f"{rt['skipped']} skipped; gsplat CUDA vs CPU compositor: {cuda}", ""]
+        lines += [
+            f"tests/render/test_rasterize.py: {rt['passed']} passed, {rt['failed']} failed, "
+            f"{rt['skipped']} skipped; gsplat CUDA vs CPU compositor: {cuda}",
+            "",
+        ]
     lines += ["| measurement | value |", "| --- | --- |"]
     tr = s.get("train", {})
     if tr:
-        lines.append(f"| train: preset / steps / batch | {tr.get('preset')} / {tr.get('steps')} / {tr.get('batch_size')} |")
+        lines.append(
+            f"| train: preset / steps / batch | {tr.get('preset')} / {tr.get('steps')} / {tr.get('batch_size')} |"
+        )
         lines.append(f"| train: iterations/s (all steps) | {tr.get('iterations_per_s')} |")
         lines.append(f"| train: iterations/s (after the first log line) | {tr.get('steady_iterations_per_s')} |")
     dr = s.get("drive", {})
     if dr:
-        lines.append(f"| drive-bench: frames x cameras (size) | {dr.get('timed_frames')} timed of {dr.get('frames')} "
-                     f"x {dr.get('cameras')} ({dr.get('image_size')}^2 px) |")
+        lines.append(
+            f"| drive-bench: frames x cameras (size) | {dr.get('timed_frames')} timed of {dr.get('frames')} "
+            f"x {dr.get('cameras')} ({dr.get('image_size')}^2 px) |"
+        )
         lines.append(f"| drive-bench: frames/s (predictor + avatar + render) | {dr.get('frames_per_s')} |")
     dc = s.get("drive_cli", {})
     if dc:

@@ -31,12 +31,22 @@ def main() -> None:
     ap.add_argument("--no-latent-norm", action="store_true", help="raw encoder latents")
     ap.add_argument("--paper-model", action="store_true", help="all three above (the paper's model)")
     ap.add_argument("--anchor-sh0", action="store_true", help="also a per-anchor colour basis (ModelConfig.anchor_sh0)")
-    ap.add_argument("--latent-sh0", action="store_true", help="also a latent -> colour map per anchor (ModelConfig.latent_sh0)")
-    ap.add_argument("--anchor-lr-scale", type=float, default=None,
-                    help="learning-rate scale of the per-anchor colour basis (default: the other bases')")
-    ap.add_argument("--mlp-init", choices=("linear", "he"), default=None, help="anchor-MLP init (default: the recipe's)")
+    ap.add_argument(
+        "--latent-sh0", action="store_true", help="also a latent -> colour map per anchor (ModelConfig.latent_sh0)"
+    )
+    ap.add_argument(
+        "--anchor-lr-scale",
+        type=float,
+        default=None,
+        help="learning-rate scale of the per-anchor colour basis (default: the other bases')",
+    )
+    ap.add_argument(
+        "--mlp-init", choices=("linear", "he"), default=None, help="anchor-MLP init (default: the recipe's)"
+    )
     ap.add_argument("--basis-lr-scale", type=float, default=0.0, help="0 = the preset's (10)")
-    ap.add_argument("--vae-noise-step", type=int, default=-2, help="-2 = the preset's (never); else VAE noise + KL from")
+    ap.add_argument(
+        "--vae-noise-step", type=int, default=-2, help="-2 = the preset's (never); else VAE noise + KL from"
+    )
     a = ap.parse_args()
 
     import gsavatar.models.config as mc
@@ -45,8 +55,11 @@ def main() -> None:
     from gsavatar.train.runs import evaluate_run
     from gsavatar.train.trainer import Trainer
 
-    off = {"input_norm": a.no_input_norm or a.paper_model, "center_correctives": a.no_center or a.paper_model,
-           "latent_norm": a.no_latent_norm or a.paper_model}
+    off = {
+        "input_norm": a.no_input_norm or a.paper_model,
+        "center_correctives": a.no_center or a.paper_model,
+        "latent_norm": a.no_latent_norm or a.paper_model,
+    }
     mc.CPU_RECIPE = {k: (not off[k]) if k in off else v for k, v in mc.CPU_RECIPE.items()}  # read by model_preset
     if a.anchor_sh0:
         mc.CPU_RECIPE["anchor_sh0"] = True
@@ -54,10 +67,19 @@ def main() -> None:
         mc.CPU_RECIPE["latent_sh0"] = True
     if a.mlp_init is not None:
         mc.CPU_RECIPE["mlp_init"] = a.mlp_init
-    cfg = TrainConfig(dataset=a.dataset, out=a.out / a.name, preset="small", steps=a.steps,
-                      correctives_step=a.correctives_step, image_scale=a.image_scale, lpips="off",
-                      checkpoint_every=10**9, log_every=100, basis_lr_scale=a.basis_lr_scale,
-                      vae_noise_step=a.vae_noise_step)
+    cfg = TrainConfig(
+        dataset=a.dataset,
+        out=a.out / a.name,
+        preset="small",
+        steps=a.steps,
+        correctives_step=a.correctives_step,
+        image_scale=a.image_scale,
+        lpips="off",
+        checkpoint_every=10**9,
+        log_every=100,
+        basis_lr_scale=a.basis_lr_scale,
+        vae_noise_step=a.vae_noise_step,
+    )
     tr = Trainer(cfg)
     if a.anchor_lr_scale is not None:
         for g in tr.optim.param_groups:
@@ -67,14 +89,23 @@ def main() -> None:
     tr.train()
     seconds = time.perf_counter() - t
     res = evaluate_run(tr.out, 8, loaded=LoadedRun(tr.net, tr.scene, tr.cfg, tr.step))
-    print(json.dumps({"name": a.name, "recipe": mc.CPU_RECIPE, "basis_lr_scale": tr.cfg.basis_lr_scale,
-                      "anchor_lr_scale": a.anchor_lr_scale,
-                      "vae_noise_step": tr.cfg.vae_noise_step, "steps": a.steps,
-                      "latent_gain_db": round(res["latent_gain_db"], 4),
-                      "frame_dependence": round(res.get("frame_dependence", {}).get("ratio", float("nan")), 4),
-                      "test_psnr_fg": round(res["test_frames_heldout_cams"]["psnr_fg"], 3),
-                      "train_psnr_fg": round(res["train_frames_heldout_cams"]["psnr_fg"], 3),
-                      "seconds": round(seconds)}))
+    print(
+        json.dumps(
+            {
+                "name": a.name,
+                "recipe": mc.CPU_RECIPE,
+                "basis_lr_scale": tr.cfg.basis_lr_scale,
+                "anchor_lr_scale": a.anchor_lr_scale,
+                "vae_noise_step": tr.cfg.vae_noise_step,
+                "steps": a.steps,
+                "latent_gain_db": round(res["latent_gain_db"], 4),
+                "frame_dependence": round(res.get("frame_dependence", {}).get("ratio", float("nan")), 4),
+                "test_psnr_fg": round(res["test_frames_heldout_cams"]["psnr_fg"], 3),
+                "train_psnr_fg": round(res["train_frames_heldout_cams"]["psnr_fg"], 3),
+                "seconds": round(seconds),
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -43,8 +43,13 @@ def main() -> None:
     from gsavatar.geometry.lbs import KinematicChain
     from gsavatar.models.predictor import AppearancePredictor, PredictorConfig
     from gsavatar.synth.fairness import pooled_r2
-    from gsavatar.train.predictor import (PredictorTrainConfig, PredictorTrainer, SequenceData, prepare_model,
-                                          split_segments)
+    from gsavatar.train.predictor import (
+        PredictorTrainConfig,
+        PredictorTrainer,
+        SequenceData,
+        prepare_model,
+        split_segments,
+    )
 
     torch.manual_seed(a.seed)
     cap = load_capture(a.capture)
@@ -52,22 +57,48 @@ def main() -> None:
     lv = torch.as_tensor(z["levels"], dtype=torch.float32)  # [F, E]
     F = lv.shape[0]
     m = cap.motion
-    data = SequenceData(torch.arange(F), torch.as_tensor(m.pose, dtype=torch.float32),
-                        torch.as_tensor(m.root_rotation, dtype=torch.float32),
-                        torch.as_tensor(m.root_translation, dtype=torch.float32), lv[:, None])
-    cfg = PredictorConfig(history=a.history, latent_dim=lv.shape[1], latent_pca_components=lv.shape[1],
-                          width=a.width, residual=not a.absolute, initial_net=False,
-                          velocities=not a.no_velocities, joint_tokens=a.joint_tokens)
+    data = SequenceData(
+        torch.arange(F),
+        torch.as_tensor(m.pose, dtype=torch.float32),
+        torch.as_tensor(m.root_rotation, dtype=torch.float32),
+        torch.as_tensor(m.root_translation, dtype=torch.float32),
+        lv[:, None],
+    )
+    cfg = PredictorConfig(
+        history=a.history,
+        latent_dim=lv.shape[1],
+        latent_pca_components=lv.shape[1],
+        width=a.width,
+        residual=not a.absolute,
+        initial_net=False,
+        velocities=not a.no_velocities,
+        joint_tokens=a.joint_tokens,
+    )
     if a.no_velocities:
         cfg = dataclasses.replace(cfg, history=1)
     slots = np.arange(cap.rig.pose_dim)
-    model = AppearancePredictor(cfg, 1, slots, cap.rig.pose_dim, None, seed=a.seed,
-                                kinematics=KinematicChain.from_rig(cap.rig) if a.joint_tokens else None)
+    model = AppearancePredictor(
+        cfg,
+        1,
+        slots,
+        cap.rig.pose_dim,
+        None,
+        seed=a.seed,
+        kinematics=KinematicChain.from_rig(cap.rig) if a.joint_tokens else None,
+    )
     train = split_segments(data.frames, cap.splits["train"].frames)
     test = split_segments(data.frames, cap.splits["test"].frames)
     prepare_model(model, data, train)
-    tcfg = PredictorTrainConfig(steps=a.steps, window=a.window, batch_size=a.batch, weight_decay=a.weight_decay,
-                                seed=a.seed, checkpoint_every=10**9, log_every=10**9, model=cfg)
+    tcfg = PredictorTrainConfig(
+        steps=a.steps,
+        window=a.window,
+        batch_size=a.batch,
+        weight_decay=a.weight_decay,
+        seed=a.seed,
+        checkpoint_every=10**9,
+        log_every=10**9,
+        model=cfg,
+    )
     out = Path("/tmp/predictor_proxy") / a.name
     if (out / "latest.pt").exists():
         (out / "latest.pt").unlink()
@@ -75,7 +106,14 @@ def main() -> None:
     PredictorTrainer(model, data, train, tcfg, out).train()
     secs = time.perf_counter() - t0
     model.eval()
-    res = {"name": a.name, "history": cfg.history, "velocities": cfg.velocities, "joint_tokens": cfg.joint_tokens, "steps": a.steps, "seconds": secs}
+    res = {
+        "name": a.name,
+        "history": cfg.history,
+        "velocities": cfg.velocities,
+        "joint_tokens": cfg.joint_tokens,
+        "steps": a.steps,
+        "seconds": secs,
+    }
     s, e = test[0]
     gt = lv[s:e]
     P, R, T = data.pose[s:e], data.root_rotation[s:e], data.root_translation[s:e]
@@ -84,13 +122,21 @@ def main() -> None:
     # here the states' zero is a real state, so start from the training mean like the drive's zero-init does.
     mean0 = model.rollout(P, R, T, model.latent_mean.clone())[:, 0]
     teach = model.rollout(P, R, T, gt[:1], first_is_given=True)[:, 0]
-    sd = lv[train[0][0]:train[-1][1]].std(0).clamp_min(1e-6)
+    sd = lv[train[0][0] : train[-1][1]].std(0).clamp_min(1e-6)
     r2 = lambda p: pooled_r2((p / sd).numpy(), (gt / sd).numpy())  # noqa: E731
-    res.update({"zero_init": r2(zero), "mean_init": r2(mean0), "teacher_first": r2(teach),
-                "hold_first": r2(gt[:1].expand_as(gt)), "train_mean": r2(model.latent_mean[0].expand_as(gt)),
-                "per_state_mean_init": [pooled_r2((mean0[:, [k]] / sd[k]).numpy(), (gt[:, [k]] / sd[k]).numpy())
-                                        for k in range(gt.shape[1])],
-                "states": [str(x) for x in z["names"]]})
+    res.update(
+        {
+            "zero_init": r2(zero),
+            "mean_init": r2(mean0),
+            "teacher_first": r2(teach),
+            "hold_first": r2(gt[:1].expand_as(gt)),
+            "train_mean": r2(model.latent_mean[0].expand_as(gt)),
+            "per_state_mean_init": [
+                pooled_r2((mean0[:, [k]] / sd[k]).numpy(), (gt[:, [k]] / sd[k]).numpy()) for k in range(gt.shape[1])
+            ],
+            "states": [str(x) for x in z["names"]],
+        }
+    )
     print(json.dumps(res))
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)

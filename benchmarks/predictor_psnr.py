@@ -44,8 +44,12 @@ def main() -> None:
     net, scene = loaded.net, loaded.scene
     cap = scene.capture
     cams = list(cap.splits["test"].cameras)
-    d = Driver(a.run, DriveConfig(mode="encoder", capture_cameras=tuple(cams), image_scale=a.image_scale),
-               loaded=loaded, predictor=None)
+    d = Driver(
+        a.run,
+        DriveConfig(mode="encoder", capture_cameras=tuple(cams), image_scale=a.image_scale),
+        loaded=loaded,
+        predictor=None,
+    )
     d.use_capture_cameras(cap)
     motion = load_driving_motion(cap.root, cap.rig, d.fps, split="test")
     frames = list(motion.gt.frames)
@@ -53,10 +57,14 @@ def main() -> None:
     targets = extract_targets(a.run, loaded=loaded)
     row = {int(f): i for i, f in enumerate(targets.frames)}
     enc = torch.as_tensor(targets.latents[[row[int(f)] for f in frames]])  # [T, A, L]
-    P, R, Tr = (torch.as_tensor(np.asarray(x)[frames], dtype=torch.float32)
-                for x in (cap.motion.pose, cap.motion.root_rotation, cap.motion.root_translation))
-    sources = {"encoder": enc, "mean latent": mean_train_latent(net, scene, d.device, loaded.config.texture_source)
-               .cpu().expand_as(enc)}
+    P, R, Tr = (
+        torch.as_tensor(np.asarray(x)[frames], dtype=torch.float32)
+        for x in (cap.motion.pose, cap.motion.root_rotation, cap.motion.root_translation)
+    )
+    sources = {
+        "encoder": enc,
+        "mean latent": mean_train_latent(net, scene, d.device, loaded.config.texture_source).cpu().expand_as(enc),
+    }
     for spec in a.predictors:
         label, _, path = spec.partition("=")
         m = predictor_from_checkpoint(Path(path))
@@ -80,11 +88,20 @@ def main() -> None:
             npx += sum(int((gts[c][1] > 0.5).sum()) * 3 for c in cams)
     psnr = {k: float(10 * np.log10(1.0 / max(v / max(npx, 1), 1e-12))) for k, v in sse.items()}
     gain = psnr["encoder"] - psnr["mean latent"]
-    out = {"run": str(a.run), "test_frames": T, "rendered_frames": len(picks), "cameras": cams,
-           "seconds": time.perf_counter() - t0, "sources": {}}
+    out = {
+        "run": str(a.run),
+        "test_frames": T,
+        "rendered_frames": len(picks),
+        "cameras": cams,
+        "seconds": time.perf_counter() - t0,
+        "sources": {},
+    }
     for k in sources:
-        out["sources"][k] = {"psnr_fg": psnr[k], "recovery": (psnr[k] - psnr["mean latent"]) / gain if gain > 0 else None,
-                             "l1_to_encoder": float((sources[k] - enc).abs().mean())}
+        out["sources"][k] = {
+            "psnr_fg": psnr[k],
+            "recovery": (psnr[k] - psnr["mean latent"]) / gain if gain > 0 else None,
+            "l1_to_encoder": float((sources[k] - enc).abs().mean()),
+        }
         print(json.dumps({"source": k, **out["sources"][k]}))
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)

@@ -45,7 +45,9 @@ def main() -> None:
             print(f"[{name}] capture built in {time.perf_counter() - t:.0f}s")
         ds = a.out / name / f"dataset_{a.tex_size}"
         t = time.perf_counter()
-        rc = prep(["all", "--capture", str(cap), "--out", str(ds), "--project.tex-size", str(a.tex_size), "--no-figures"])
+        rc = prep(
+            ["all", "--capture", str(cap), "--out", str(ds), "--project.tex-size", str(a.tex_size), "--no-figures"]
+        )
         if rc:
             raise SystemExit(rc)
         prep_s = time.perf_counter() - t
@@ -53,12 +55,16 @@ def main() -> None:
         s = rep["summary"]
         rows.append((name, s, prep_s))
         print(json.dumps(s, indent=1))
-    print("\n| capture | tex | frames | coverage | PSNR >=2 views (median band) | PSNR >=2 views, first frames: band / mean |")
+    print(
+        "\n| capture | tex | frames | coverage | PSNR >=2 views (median band) | PSNR >=2 views, first frames: band / mean |"
+    )
     print("|---|---|---|---|---|---|")
     for name, s, _ in rows:
         mf = s.get("mean_fusion", {})
-        print(f"| {name} | {s['tex_size']} | {s['frames']} | {s['coverage']:.1%} | {s.get('psnr_2v', float('nan')):.2f} dB | "
-              f"{mf.get('median_band', float('nan')):.2f} / {mf.get('mean', float('nan')):.2f} dB |")
+        print(
+            f"| {name} | {s['tex_size']} | {s['frames']} | {s['coverage']:.1%} | {s.get('psnr_2v', float('nan')):.2f} dB | "
+            f"{mf.get('median_band', float('nan')):.2f} / {mf.get('mean', float('nan')):.2f} dB |"
+        )
 
 
 if __name__ == "__main__":

@@ -33,7 +33,12 @@ ROWS = [
     # (label, run dir, drive mode[, predictor folder inside the run])
     ("Ours (predictor, encoder init)", "run_ours", "predictor_encoder_init"),
     ("Ours (predictor, zero init)", "run_ours", "predictor"),
-    ("Ours, no history: N_b = 1, no velocities (encoder init)", "run_ours", "predictor_encoder_init", "predictor_nohist"),
+    (
+        "Ours, no history: N_b = 1, no velocities (encoder init)",
+        "run_ours",
+        "predictor_encoder_init",
+        "predictor_nohist",
+    ),
     ("Ours, no history: N_b = 1, no velocities (zero init)", "run_ours", "predictor", "predictor_nohist"),
     ("Ours (predictor, pose init)", "run_ours", "pose_init"),
     ("Ours (re-init. 30)", "run_ours", "reinit"),
@@ -63,18 +68,38 @@ def drive_row(run: Path, mode: str, out: Path, image_scale: float, predictor: st
     t = time.perf_counter()
     extra = []
     if mode.startswith("reinit") and mode != "reinit":  # reinitK: encoder every K frames
-        extra, mode = ["--reinit-every", mode[len("reinit"):]], "reinit"
+        extra, mode = ["--reinit-every", mode[len("reinit") :]], "reinit"
     if predictor != "predictor":
         extra += ["--predictor", str(run / predictor / "latest.pt")]
-    rc = drive(["--run", str(run), "--motion", capture, "--split", "test", "--mode", mode, "--out", str(out),
-                "--image-scale", str(image_scale), *extra])
+    rc = drive(
+        [
+            "--run",
+            str(run),
+            "--motion",
+            capture,
+            "--split",
+            "test",
+            "--mode",
+            mode,
+            "--out",
+            str(out),
+            "--image-scale",
+            str(image_scale),
+            *extra,
+        ]
+    )
     if rc:
         raise SystemExit(f"avatar-drive failed for {run} {mode}")
     info = json.loads((out / "drive.json").read_text())
     m = info["metrics"]
     views = info["frames"] * len(info["cameras"])
-    row = {**m, "frames": info["frames"], "fps_drive": views / max(time.perf_counter() - t, 1e-9),
-           "lpips_net": json.loads((out / "metrics.json").read_text()).get("lpips_net"), "image_scale": image_scale}
+    row = {
+        **m,
+        "frames": info["frames"],
+        "fps_drive": views / max(time.perf_counter() - t, 1e-9),
+        "lpips_net": json.loads((out / "metrics.json").read_text()).get("lpips_net"),
+        "image_scale": image_scale,
+    }
     atomic_write_json(cached, row)
     return row
 
@@ -113,13 +138,25 @@ def locality(run: Path, param: str, delta: float = 0.3) -> dict:
     # colour of each Gaussian (SH band 0) and its canonical (pose-corrective) position
     dc = ((outs[1].sh[0, :, 0] - outs[0].sh[0, :, 0]) * SH_C0).abs().mean(1)
     dx = (outs[1].canonical_means[0] - outs[0].canonical_means[0]).norm(dim=1)
-    return {"param": param, "outside_colour": float(dc[~region].mean()), "inside_colour": float(dc[region].mean()),
-            "outside_pos_mm": 1000 * float(dx[~region].mean()), "inside_pos_mm": 1000 * float(dx[region].mean()),
-            "region_fraction": float(region.float().mean())}
+    return {
+        "param": param,
+        "outside_colour": float(dc[~region].mean()),
+        "inside_colour": float(dc[region].mean()),
+        "outside_pos_mm": 1000 * float(dx[~region].mean()),
+        "inside_pos_mm": 1000 * float(dx[region].mean()),
+        "region_fraction": float(region.float().mean()),
+    }
 
 
-RUN_DIRS = ("run_ours", "run_oracle", "run_mmlps", "run_nrfgca", "run_wo_local_pose", "run_wo_local_pca",
-            "run_ours_tinymodel")
+RUN_DIRS = (
+    "run_ours",
+    "run_oracle",
+    "run_mmlps",
+    "run_nrfgca",
+    "run_wo_local_pose",
+    "run_wo_local_pca",
+    "run_ours_tinymodel",
+)
 
 
 def run_summary(run: Path) -> dict:
@@ -137,7 +174,9 @@ def run_summary(run: Path) -> dict:
     out["texture_source"] = cfg.get("texture_source", "projected")
     t = run / "timing.json"
     if t.exists():
-        out.update({k: v for k, v in json.loads(t.read_text()).items() if k in ("steps", "seconds", "steps_per_s", "threads")})
+        out.update(
+            {k: v for k, v in json.loads(t.read_text()).items() if k in ("steps", "seconds", "steps_per_s", "threads")}
+        )
     return out
 
 
@@ -163,25 +202,37 @@ def capture_tables(label: str, runs: Path, image_scale: float, params: list[str]
                     loc.append((rdir, r))
     summaries = {r: run_summary(runs / r) for r in RUN_DIRS if (runs / r / "eval" / "metrics.json").exists()}
     lp = next((r[3]["lpips_net"] for r in rows if r[3].get("lpips_net")), "off")
-    lines = [f"## {label}", "", f"Runs in `{runs}`. Held-out TEST frames (last 20% of the capture, novel poses and "
-             f"appearance states) seen from the held-out cameras, driven by `avatar-drive`. Protocol `ours`: black "
-             f"background, LPIPS = {lp}; protocol `ag` (Animatable Gaussians / MMLPs): ground truth white outside its "
-             f"mask, full image (docs/train.md; its LPIPS needs `--ag-lpips on`, off on this CPU box).", "",
-             "| method | PSNR | PSNR (mask) | SSIM | LPIPS | PSNR (ag) | SSIM (ag) | temporal error | drive views/s |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"## {label}",
+        "",
+        f"Runs in `{runs}`. Held-out TEST frames (last 20% of the capture, novel poses and "
+        f"appearance states) seen from the held-out cameras, driven by `avatar-drive`. Protocol `ours`: black "
+        f"background, LPIPS = {lp}; protocol `ag` (Animatable Gaussians / MMLPs): ground truth white outside its "
+        f"mask, full image (docs/train.md; its LPIPS needs `--ag-lpips on`, off on this CPU box).",
+        "",
+        "| method | PSNR | PSNR (mask) | SSIM | LPIPS | PSNR (ag) | SSIM (ag) | temporal error | drive views/s |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     f = lambda m, k, fmt: format(m[k], fmt) if m.get(k) is not None else "-"  # noqa: E731
     for row_label, _, _, m in rows:
-        lines.append(f"| {row_label} | {m['psnr']:.2f} | {m['psnr_fg']:.2f} | {m['ssim']:.4f} | {f(m, 'lpips', '.4f')} | "
-                     f"{f(m, 'ag_psnr', '.2f')} | {f(m, 'ag_ssim', '.4f')} | {m['temporal_error']:.4f} | "
-                     f"{m['fps_drive']:.2f} |")
+        lines.append(
+            f"| {row_label} | {m['psnr']:.2f} | {m['psnr_fg']:.2f} | {m['ssim']:.4f} | {f(m, 'lpips', '.4f')} | "
+            f"{f(m, 'ag_psnr', '.2f')} | {f(m, 'ag_ssim', '.4f')} | {m['temporal_error']:.4f} | "
+            f"{m['fps_drive']:.2f} |"
+        )
     if summaries:
-        lines += ["", "Training runs (`avatar-train eval`, encoder latents; held-out cameras; PSNR inside the mask). "
-                  "*Latent gain*: test frames with the encoder's latents minus the same with the training frames' mean "
-                  "latent. *Frame dependence*: the avatar's per-Gaussian colour std over 24 training frames / the "
-                  "ground-truth albedo's at the same points (1 = all of the change, 0 = static). The oracle encodes "
-                  "the ground-truth albedo instead of the projected texture.", "",
-                  "| run | train frames (mask) | test frames (mask) | latent gain (dB) | frame dependence | steps | "
-                  "minutes | steps/s |", "|---|---|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "Training runs (`avatar-train eval`, encoder latents; held-out cameras; PSNR inside the mask). "
+            "*Latent gain*: test frames with the encoder's latents minus the same with the training frames' mean "
+            "latent. *Frame dependence*: the avatar's per-Gaussian colour std over 24 training frames / the "
+            "ground-truth albedo's at the same points (1 = all of the change, 0 = static). The oracle encodes "
+            "the ground-truth albedo instead of the projected texture.",
+            "",
+            "| run | train frames (mask) | test frames (mask) | latent gain (dB) | frame dependence | steps | "
+            "minutes | steps/s |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
         for rdir, m in summaries.items():
             g = m.get("latent_gain_db")
             fd = m.get("frame_dependence_ratio")
@@ -190,18 +241,28 @@ def capture_tables(label: str, runs: Path, image_scale: float, params: list[str]
                 f"| {rdir} | {m['train_frames_heldout_cams']['psnr_fg']:.2f} | "
                 f"{m.get('test_frames_heldout_cams', {}).get('psnr_fg', float('nan')):.2f} | "
                 f"{'-' if g is None else f'{g:+.2f}'} | {'-' if fd is None else f'{fd:.2f}'} | {m.get('steps', '-')} | "
-                f"{minutes} | {m.get('steps_per_s', '-')} |")
+                f"{minutes} | {m.get('steps_per_s', '-')} |"
+            )
     if loc:
-        lines += ["", "Locality (paper fig. 6): +0.3 rad on one pose parameter at the first test frame; mean change "
-                  "of Gaussian colour (RGB, 0..1) and canonical position outside / inside the parameter's region.", "",
-                  "| run | parameter | colour outside | colour inside | position outside (mm) | position inside (mm) | region |",
-                  "|---|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "Locality (paper fig. 6): +0.3 rad on one pose parameter at the first test frame; mean change "
+            "of Gaussian colour (RGB, 0..1) and canonical position outside / inside the parameter's region.",
+            "",
+            "| run | parameter | colour outside | colour inside | position outside (mm) | position inside (mm) | region |",
+            "|---|---|---|---|---|---|---|",
+        ]
         for rdir, r in loc:
-            lines.append(f"| {rdir} | {r['param']} | {r['outside_colour']:.5f} | {r['inside_colour']:.5f} | "
-                         f"{r['outside_pos_mm']:.3f} | {r['inside_pos_mm']:.3f} | {r['region_fraction']:.1%} |")
-    record = {"runs_dir": str(runs), "runs": summaries,
-              "drive_rows": [{"method": lab, "run": rdir, "mode": mode, **m} for lab, rdir, mode, m in rows],
-              "locality": [{"run": rdir, **r} for rdir, r in loc]}
+            lines.append(
+                f"| {rdir} | {r['param']} | {r['outside_colour']:.5f} | {r['inside_colour']:.5f} | "
+                f"{r['outside_pos_mm']:.3f} | {r['inside_pos_mm']:.3f} | {r['region_fraction']:.1%} |"
+            )
+    record = {
+        "runs_dir": str(runs),
+        "runs": summaries,
+        "drive_rows": [{"method": lab, "run": rdir, "mode": mode, **m} for lab, rdir, mode, m in rows],
+        "locality": [{"run": rdir, **r} for rdir, r in loc],
+    }
     ours, oracle = summaries.get("run_ours", {}), summaries.get("run_oracle", {})
     if ours.get("latent_gain_db") is not None and oracle.get("latent_gain_db"):
         record["latent_gain_vs_oracle"] = ours["latent_gain_db"] / oracle["latent_gain_db"]
@@ -233,16 +294,26 @@ def _capture_of(run: Path) -> Path:
 def _summary_lines(record: dict, mean: float | None) -> list[str]:
     out = []
     if mean is not None:
-        out += ["", f"Training-mean latent on the same frames and cameras (drive mode `train_mean`): PSNR (mask) {mean:.2f}."]
+        out += [
+            "",
+            f"Training-mean latent on the same frames and cameras (drive mode `train_mean`): PSNR (mask) {mean:.2f}.",
+        ]
     if "predictor_recovery" in record:
-        out.append(f"Predictor recovery (zero init, no texture: its gain over the training-mean latent / the encoder's): "
-                   f"{record['predictor_recovery']:.0%}"
-                   + (f"; without history {record['predictor_recovery_no_history']:.0%}."
-                      if "predictor_recovery_no_history" in record else "."))
+        out.append(
+            f"Predictor recovery (zero init, no texture: its gain over the training-mean latent / the encoder's): "
+            f"{record['predictor_recovery']:.0%}"
+            + (
+                f"; without history {record['predictor_recovery_no_history']:.0%}."
+                if "predictor_recovery_no_history" in record
+                else "."
+            )
+        )
     if "history_fairness" in record:
         f = record["history_fairness"]
-        out.append(f"History fairness of the capture (R^2 of the appearance states on test frames, docs/synth.md): "
-                   f"current pose {f['pose_only']:.2f}, last 10 poses {f['history']:.2f}.")
+        out.append(
+            f"History fairness of the capture (R^2 of the appearance states on test frames, docs/synth.md): "
+            f"current pose {f['pose_only']:.2f}, last 10 poses {f['history']:.2f}."
+        )
     return out
 
 
@@ -259,17 +330,33 @@ def main() -> None:
     for spec in a.runs:
         label, sep, d = spec.partition("=")
         caps.append((label, Path(d)) if sep else (Path(spec).name, Path(spec)))
-    lines = ["# Results on synthetic captures", "", "Regenerated by:", "", "```bash",
-             f"PYTHONPATH=src .venv/bin/python benchmarks/results_table.py --runs {' '.join(a.runs)} --out {a.out}",
-             "```", "",
-             f"Machine: {platform.system()} {platform.machine()}, CPU only, torch {torch.__version__}; training threads "
-             f"as in each run's `timing.json` (the 2-core box was shared by two trainings at a time, so steps/s are "
-             f"comparable only within a table).", ""]
+    lines = [
+        "# Results on synthetic captures",
+        "",
+        "Regenerated by:",
+        "",
+        "```bash",
+        f"PYTHONPATH=src .venv/bin/python benchmarks/results_table.py --runs {' '.join(a.runs)} --out {a.out}",
+        "```",
+        "",
+        f"Machine: {platform.system()} {platform.machine()}, CPU only, torch {torch.__version__}; training threads "
+        f"as in each run's `timing.json` (the 2-core box was shared by two trainings at a time, so steps/s are "
+        f"comparable only within a table).",
+        "",
+    ]
     import subprocess
 
     commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip() or None
-    record = {"machine": {"system": platform.system(), "machine": platform.machine(), "torch": torch.__version__,
-                          "device": "cpu"}, "commit": commit, "captures": {}}
+    record = {
+        "machine": {
+            "system": platform.system(),
+            "machine": platform.machine(),
+            "torch": torch.__version__,
+            "device": "cpu",
+        },
+        "commit": commit,
+        "captures": {},
+    }
     for label, runs in caps:
         cl, cr = capture_tables(label, runs, a.image_scale, a.params)
         lines += cl + [""]

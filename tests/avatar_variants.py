@@ -41,8 +41,9 @@ def build_parts(n_gaussians: int = 300):
     return rig, h, masks, fit_pose_pca(poses, rig, 2, "local"), fit_pose_pca(poses, rig, 3, "global")
 
 
-def make_variant(parts, name: str, center_correctives: bool = True,
-                 dtype: torch.dtype = torch.float32) -> GaussianAvatar:
+def make_variant(
+    parts, name: str, center_correctives: bool = True, dtype: torch.dtype = torch.float32
+) -> GaussianAvatar:
     """The variant ``name`` of the tiny preset with non-zero corrective bases / decoder (seeded)."""
     rig, h, masks, pl, pg = parts
     # the model as it was when the fingerprints below were stored: without the later opt-in latent colour map
@@ -66,9 +67,13 @@ def make_inputs(parts, B: int = 2, dtype: torch.dtype = torch.float32) -> tuple[
     """(pose [B, P], root_rotation [B, 3], root_translation [B, 3], face [B, E], latents [B, A, 16])."""
     rig, h = parts[0], parts[1]
     g = torch.Generator().manual_seed(9)
-    x = (torch.randn(B, rig.pose_dim, generator=g) * 0.3, torch.randn(B, 3, generator=g) * 0.3,
-         torch.randn(B, 3, generator=g), torch.randn(B, FACE_DIM, generator=g),
-         torch.randn(B, h.num_anchors, 16, generator=g))
+    x = (
+        torch.randn(B, rig.pose_dim, generator=g) * 0.3,
+        torch.randn(B, 3, generator=g) * 0.3,
+        torch.randn(B, 3, generator=g),
+        torch.randn(B, FACE_DIM, generator=g),
+        torch.randn(B, h.num_anchors, 16, generator=g),
+    )
     return tuple(t.to(dtype) for t in x)
 
 
@@ -97,8 +102,9 @@ def fingerprints(parts=None) -> dict[str, float]:
             g = torch.Generator().manual_seed(13)
             for n, p in sorted(av.named_parameters(), key=lambda np_: legacy_name(np_[0])):
                 if p.grad is not None:
-                    res[f"{name}/{call}/grad/{legacy_name(n)}"] = float((p.grad * torch.rand(p.shape, generator=g,
-                                                                                          dtype=torch.float64)).sum())
+                    res[f"{name}/{call}/grad/{legacy_name(n)}"] = float(
+                        (p.grad * torch.rand(p.shape, generator=g, dtype=torch.float64)).sum()
+                    )
     return res
 
 

@@ -32,7 +32,19 @@ def tiny_dataset(tiny_capture, tmp_path_factory) -> Path:
     from gsavatar.prep.cli import main
 
     ds = tmp_path_factory.mktemp("tinyds") / "dataset"
-    rc = main(["all", "--capture", str(tiny_capture), "--out", str(ds), "--workers", "1",
-               "--project.tex-size", "128", "--no-figures"])
+    rc = main(
+        [
+            "all",
+            "--capture",
+            str(tiny_capture),
+            "--out",
+            str(ds),
+            "--workers",
+            "1",
+            "--project.tex-size",
+            "128",
+            "--no-figures",
+        ]
+    )
     assert rc == 0
     return ds

@@ -35,8 +35,23 @@ def box_template() -> Template:
     y = np.array([0.0, 1.0])
     z = np.array([-0.1, 0.1])
     V = np.array([[a, b, c] for a in x for b in y for c in z], dtype=np.float32)
-    F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], dtype=np.int64)
+    F = np.array(
+        [
+            [0, 1, 3],
+            [0, 3, 2],
+            [4, 6, 7],
+            [4, 7, 5],
+            [0, 4, 5],
+            [0, 5, 1],
+            [2, 3, 7],
+            [2, 7, 6],
+            [0, 2, 6],
+            [0, 6, 4],
+            [1, 5, 7],
+            [1, 7, 3],
+        ],
+        dtype=np.int64,
+    )
     w = np.stack([1 - V[:, 1], V[:, 1]], 1).astype(np.float32)
     idx = np.tile(np.array([0, 1], dtype=np.int32), (len(V), 1))
     uv = np.array([[0.1, 0.1], [0.9, 0.1], [0.5, 0.9]], dtype=np.float32)
@@ -59,8 +74,11 @@ def make_minimal_capture(root: Path, num_frames: int = 3, size: tuple[int, int] 
     splits = {"train": Split(list(range(num_frames - 1)), ["cam00"]), "test": Split([num_frames - 1], ["cam01"])}
     write_capture_metadata(root, 30.0, num_frames, cams, splits)
     rng = np.random.default_rng(0)
-    Motion(rng.normal(0, 0.1, (num_frames, 3)).astype(np.float32), np.zeros((num_frames, 3), np.float32),
-           np.zeros((num_frames, 3), np.float32)).save(root / "motion.npz")
+    Motion(
+        rng.normal(0, 0.1, (num_frames, 3)).astype(np.float32),
+        np.zeros((num_frames, 3), np.float32),
+        np.zeros((num_frames, 3), np.float32),
+    ).save(root / "motion.npz")
     for c in cams:
         for f in range(num_frames):
             write_image(root / "images" / c / f"{f:08d}.png", rng.random((h, w, 3)))

@@ -21,7 +21,9 @@ X0, X1, RADIUS = -0.2, 1.0, 0.05
 
 def arm_rig() -> Rig:
     names = list(JOINT_X)
-    joints = [{"name": n, "parent": names[i - 1] if i else None, "head": [JOINT_X[n], 0.0, 0.0]} for i, n in enumerate(names)]
+    joints = [
+        {"name": n, "parent": names[i - 1] if i else None, "head": [JOINT_X[n], 0.0, 0.0]} for i, n in enumerate(names)
+    ]
     axes = {"rx": [1, 0, 0], "ry": [0, 1, 0], "rz": [0, 0, 1]}
     params = []
     for n in ("Spine", "LeftArm", "LeftHand", "LeftFinger"):
@@ -40,7 +42,15 @@ def body_rig() -> Rig:
     """A rig touching all 7 groups (for PCA tests); geometry irrelevant. P = 3+6+... slots."""
     joints = [{"name": "Hips", "parent": None, "head": [0, 0, 0]}]
     params, groups = [], {}
-    sizes = {"torso_head": 4, "left_leg": 3, "right_leg": 3, "left_arm": 4, "right_arm": 4, "left_hand": 9, "right_hand": 9}
+    sizes = {
+        "torso_head": 4,
+        "left_leg": 3,
+        "right_leg": 3,
+        "left_arm": 4,
+        "right_arm": 4,
+        "left_hand": 9,
+        "right_hand": 9,
+    }
     for g, n in sizes.items():
         j = f"{g}_j"
         joints.append({"name": j, "parent": "Hips", "head": [0, 0, 0]})
@@ -66,7 +76,9 @@ def arm_template(n_theta: int = 24, n_x: int = 61, blend: float = 0.05, k: int =
         [np.repeat(xs, n_theta), RADIUS * np.tile(np.cos(th), n_x), RADIUS * np.tile(np.sin(th), n_x)], axis=1
     ).astype(np.float32)
     faces, fuv = [], []
-    uv = np.stack(np.meshgrid(np.arange(n_theta + 1) / n_theta, (xs - X0) / (X1 - X0), indexing="xy"), -1).reshape(-1, 2)
+    uv = np.stack(np.meshgrid(np.arange(n_theta + 1) / n_theta, (xs - X0) / (X1 - X0), indexing="xy"), -1).reshape(
+        -1, 2
+    )
     for i in range(n_x - 1):
         for t in range(n_theta):
             a, b = i * n_theta + t, i * n_theta + (t + 1) % n_theta
@@ -119,8 +131,14 @@ def randomize_bases(avatar, seed: int = 5, std: float = 0.05) -> None:
                 p.copy_(torch.randn(p.shape, generator=g) * std)
 
 
-def arm_avatar_inputs(n_anchors: int = 24, n_control: int = 120, n_gaussians: int = 800, min_candidates: int = 2000,
-                      n_poses: int = 60, constant_torso: bool = False):
+def arm_avatar_inputs(
+    n_anchors: int = 24,
+    n_control: int = 120,
+    n_gaussians: int = 800,
+    min_candidates: int = 2000,
+    n_poses: int = 60,
+    constant_torso: bool = False,
+):
     """What a GaussianAvatar is built from, on the arm rig and template: (rig, hierarchy, localization masks,
     local pose PCA (2 components), global pose PCA (3)). ``constant_torso``: the first three pose slots are
     held at 0.1 in the PCA's training poses (a constant group)."""
@@ -130,8 +148,9 @@ def arm_avatar_inputs(n_anchors: int = 24, n_control: int = 120, n_gaussians: in
 
     rig = arm_rig()
     t = arm_template()
-    h = build_hierarchy(t, n_anchors=n_anchors, n_control=n_control, n_gaussians=n_gaussians, seed=0,
-                        min_candidates=min_candidates)
+    h = build_hierarchy(
+        t, n_anchors=n_anchors, n_control=n_control, n_gaussians=n_gaussians, seed=0, min_candidates=min_candidates
+    )
     masks = build_localization(h, rig, t.face_uv_mask)
     poses = np.random.default_rng(0).normal(size=(n_poses, rig.pose_dim)) * 0.3
     if constant_torso:

@@ -33,12 +33,18 @@ LAYERS: dict[str, int] = {
 """Layer of each subpackage of gsavatar (low to high). ``gsavatar/__init__.py`` itself imports none."""
 
 ALLOWED: dict[tuple[str, str], str] = {
-    ("gsavatar.prep.cli", "gsavatar.synth.cli"):
-        "`avatar-prep synth` registers the synthetic capture source's command; nothing else in prep sees synth",
-    ("gsavatar.prep.cli", "gsavatar.importers.cli"):
-        "`avatar-prep import` registers the real capture sources' command; nothing else in prep sees importers",
-    ("gsavatar.prep.cli", "gsavatar.fitting.cli"):
-        "`avatar-prep fit-body` registers the body fit's command; nothing else in prep sees fitting",
+    (
+        "gsavatar.prep.cli",
+        "gsavatar.synth.cli",
+    ): "`avatar-prep synth` registers the synthetic capture source's command; nothing else in prep sees synth",
+    (
+        "gsavatar.prep.cli",
+        "gsavatar.importers.cli",
+    ): "`avatar-prep import` registers the real capture sources' command; nothing else in prep sees importers",
+    (
+        "gsavatar.prep.cli",
+        "gsavatar.fitting.cli",
+    ): "`avatar-prep fit-body` registers the body fit's command; nothing else in prep sees fitting",
 }
 """Exceptions by (importer module, imported module), each with its reason."""
 
@@ -69,9 +75,14 @@ def imported_modules(path: Path, src: Path = SRC) -> list[tuple[str, int]]:
                 sub = src.joinpath(*mod.split("."), a.name)
                 is_module = sub.with_suffix(".py").exists() or (sub / "__init__.py").exists()
                 out.append((f"{mod}.{a.name}" if is_module else mod, node.lineno))
-        elif (isinstance(node, ast.Call) and isinstance(node.func, (ast.Attribute, ast.Name))
-              and getattr(node.func, "attr", getattr(node.func, "id", None)) in ("import_module", "__import__")
-              and node.args and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
+        elif (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, (ast.Attribute, ast.Name))
+            and getattr(node.func, "attr", getattr(node.func, "id", None)) in ("import_module", "__import__")
+            and node.args
+            and isinstance(node.args[0], ast.Constant)
+            and isinstance(node.args[0].value, str)
+        ):
             out.append((node.args[0].value, node.lineno))
     return [(m, line) for m, line in out if m == "gsavatar" or m.startswith("gsavatar.")]
 
@@ -101,8 +112,9 @@ def violations(src: Path = SRC) -> list[str]:
             elif layer_of(pt) == layer_of(pi):
                 found.append(f"{importer}:{line} -> {imported} (sibling of layer {LAYERS[pi]}: {pi} -> {pt})")
             elif layer_of(pt) > layer_of(pi):
-                found.append(f"{importer}:{line} -> {imported} (upward: {pi} (layer {LAYERS[pi]}) -> {pt} "
-                             f"(layer {LAYERS[pt]}))")
+                found.append(
+                    f"{importer}:{line} -> {imported} (upward: {pi} (layer {LAYERS[pi]}) -> {pt} (layer {LAYERS[pt]}))"
+                )
     return found
 
 
@@ -131,12 +143,15 @@ def test_allowed_exceptions_are_still_needed():
     assert not stale, f"ALLOWED lists imports that no longer exist: {stale}"
 
 
-@pytest.mark.parametrize(("importer", "forbidden"), [
-    ("models", {"prep", "train", "synth", "runs", "drive"}),
-    ("drive", {"train", "synth", "prep"}),
-    ("data_schema", {"render", "metrics", "motion", "models", "runs", "prep", "synth", "train", "drive"}),
-    ("utils", set(LAYERS) - {"utils"}),
-])
+@pytest.mark.parametrize(
+    ("importer", "forbidden"),
+    [
+        ("models", {"prep", "train", "synth", "runs", "drive"}),
+        ("drive", {"train", "synth", "prep"}),
+        ("data_schema", {"render", "metrics", "motion", "models", "runs", "prep", "synth", "train", "drive"}),
+        ("utils", set(LAYERS) - {"utils"}),
+    ],
+)
 def test_named_boundaries(importer, forbidden):
     crossing = sorted(b for a, b in edges() if a == importer and b in forbidden)
     assert not crossing, f"{importer} imports {crossing}"
@@ -154,7 +169,8 @@ def test_checker_sees_deferred_relative_and_dynamic_imports(tmp_path):
         "def f():\n"
         "    from gsavatar.prep.pca import fit\n"  # deferred, upward
         "    from ..train import losses\n"  # relative, upward
-        "    return importlib.import_module('gsavatar.train.trainer')\n")  # dynamic, upward
+        "    return importlib.import_module('gsavatar.train.trainer')\n"
+    )  # dynamic, upward
     (pkg / "models" / "b.py").write_text("from gsavatar import prep\n")  # attribute-style package import
     (pkg / "prep" / "c.py").write_text("from gsavatar.train import data\n")  # sibling layer
     found = violations(tmp_path)

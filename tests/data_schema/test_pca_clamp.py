@@ -63,7 +63,8 @@ def test_pose_pca_and_latent_pca_use_it(box):
     np.testing.assert_array_equal(pca.clamp(x @ basis), clamp_coefficients(x @ basis, limit))
     # per-anchor latent PCA: anchor a's box is the same projection with its own mean / basis / limit
     t = torch.from_numpy
-    lat = latent_pca_project(t(x)[:, None].expand(20, 3, 7), t(mean).expand(3, 7), t(basis).expand(3, 7, 4),
-                             t(limit).expand(3, 4))
+    lat = latent_pca_project(
+        t(x)[:, None].expand(20, 3, 7), t(mean).expand(3, 7), t(basis).expand(3, 7, 4), t(limit).expand(3, 4)
+    )
     for a in range(3):
         np.testing.assert_allclose(lat[:, a].numpy(), want, rtol=0, atol=1e-12)

@@ -32,8 +32,27 @@ def tiny_run(tiny_dataset, tmp_path_factory) -> Path:
     from gsavatar.train.cli import main as train_main
 
     run = tmp_path_factory.mktemp("drive") / "run"
-    assert train_main(["avatar", "--dataset", str(tiny_dataset), "--out", str(run), "--preset", "tiny", "--steps", "3",
-                       "--lpips", "off", "--image-scale", "0.5", "--no-evaluate"]) == 0
+    assert (
+        train_main(
+            [
+                "avatar",
+                "--dataset",
+                str(tiny_dataset),
+                "--out",
+                str(run),
+                "--preset",
+                "tiny",
+                "--steps",
+                "3",
+                "--lpips",
+                "off",
+                "--image-scale",
+                "0.5",
+                "--no-evaluate",
+            ]
+        )
+        == 0
+    )
     return run
 
 
@@ -47,8 +66,16 @@ def loaded(tiny_run):
 def small_predictor(net, trained_init: bool = False) -> AppearancePredictor:
     """An untrained (random) predictor of the real class, small enough for tests."""
     av = net.avatar
-    cfg = PredictorConfig(history=4, width=16, heads=2, ff=32, latent_dim=av.latent_in, token_hidden=8,
-                          latent_pca_components=4, initial_hidden=16)
+    cfg = PredictorConfig(
+        history=4,
+        width=16,
+        heads=2,
+        ff=32,
+        latent_dim=av.latent_in,
+        token_hidden=8,
+        latent_pca_components=4,
+        initial_hidden=16,
+    )
     p = AppearancePredictor(cfg, av.num_anchors, np.arange(0, av.pose_dim, 5), av.pose_dim, seed=1).eval()
     torch.nn.init.normal_(p.head.weight, std=0.1)  # the residual head starts at zero (persistence); move it
     if trained_init:
@@ -68,7 +95,9 @@ def _constant_velocity_motion(rig, n: int, fps: float, seed: int = 0):
         base = Rotation.from_rotvec(rng.normal(scale=0.3, size=3))
         R = base * Rotation.from_rotvec(t[:, None] * rng.normal(scale=1.5, size=3)[None])
         pose[:, sl] = R.as_rotvec() if kind == "aa" else np.unwrap(R.as_euler(seq), axis=0) * signs
-    rr = (Rotation.from_rotvec([0.1, 0.2, 0.3]) * Rotation.from_rotvec(t[:, None] * np.array([[0.0, 2.0, 0.5]]))).as_rotvec()
+    rr = (
+        Rotation.from_rotvec([0.1, 0.2, 0.3]) * Rotation.from_rotvec(t[:, None] * np.array([[0.0, 2.0, 0.5]]))
+    ).as_rotvec()
     rt = np.array([0.1, 0.9, -0.2]) + t[:, None] * np.array([[0.5, 0.0, -0.3]])
     face = t[:, None] * np.array([[1.0, -2.0]])
     return [x.astype(np.float32) for x in (pose, rr, rt, face)]
@@ -112,8 +141,9 @@ def test_load_motion_from_capture_npz_and_bvh(tiny_capture, tmp_path):
     assert double.num_frames == 7 and double.gt is None and double.source_fps == cap.fps
 
     npz = tmp_path / "walk.npz"
-    np.savez(npz, pose=cap.motion.pose, root_rotation=cap.motion.root_rotation,
-             root_translation=cap.motion.root_translation)
+    np.savez(
+        npz, pose=cap.motion.pose, root_rotation=cap.motion.root_rotation, root_translation=cap.motion.root_translation
+    )
     with pytest.raises(ValueError, match="frame rate unknown"):
         load_driving_motion(npz, rig, 15.0)
     (tmp_path / "walk.json").write_text(json.dumps({"fps": 30.0}))  # sidecar
@@ -126,7 +156,9 @@ def test_load_motion_from_capture_npz_and_bvh(tiny_capture, tmp_path):
         assert b.pose.shape == (5, rig.pose_dim) and np.isfinite(b.pose).all() and b.fps == 15.0
 
     bad = tmp_path / "bad.npz"
-    np.savez(bad, pose=np.zeros((4, rig.pose_dim + 1)), root_rotation=np.zeros((4, 3)), root_translation=np.zeros((4, 3)))
+    np.savez(
+        bad, pose=np.zeros((4, rig.pose_dim + 1)), root_rotation=np.zeros((4, 3)), root_translation=np.zeros((4, 3))
+    )
     with pytest.raises(SchemaError, match="pose") as e:
         load_driving_motion(bad, rig, 15.0, fps=15.0)
     assert e.value.field == "pose" and str(bad) in str(e.value)
@@ -156,8 +188,15 @@ def test_streaming_equals_batch_and_render_afterwards(loaded, tiny_run, tiny_cap
     tex = texture_source(motion, scene, None)
     enc = lambda t: net.latents(tex(t)[None], None)[0][0]  # noqa: E731
     f = lambda a: torch.from_numpy(np.ascontiguousarray(a))  # noqa: E731
-    ref = pred.rollout(f(motion.pose), f(motion.root_rotation), f(motion.root_translation), init_latents=enc(0),
-                       first_is_given=True, reinit_every=2, reinit_latents=enc)
+    ref = pred.rollout(
+        f(motion.pose),
+        f(motion.root_rotation),
+        f(motion.root_translation),
+        init_latents=enc(0),
+        first_is_given=True,
+        reinit_every=2,
+        reinit_latents=enc,
+    )
     got = torch.stack([fr.latents for fr in frames])
     assert torch.equal(got, ref)
     assert torch.equal(got[0], enc(0)) and not torch.equal(got[1], got[0])
@@ -165,11 +204,13 @@ def test_streaming_equals_batch_and_render_afterwards(loaded, tiny_run, tiny_cap
     with torch.no_grad():
         for t, fr in enumerate(frames):
             x = motion_inputs(motion, t)
-            batch = FrameBatch(x.pose[None], x.root_rotation[None], x.root_translation[None], x.face[None],
-                               latents=ref[t][None])
+            batch = FrameBatch(
+                x.pose[None], x.root_rotation[None], x.root_translation[None], x.face[None], latents=ref[t][None]
+            )
             out = net(batch, sh_degree=d.sh_degree, correctives=True)
-            col, _ = render_views(out.avatar, v.viewmat[None], v.K[None], v.width, v.height, torch.zeros(1, 3),
-                                  d.sh_degree, tcfg.backend)
+            col, _ = render_views(
+                out.avatar, v.viewmat[None], v.K[None], v.width, v.height, torch.zeros(1, 3), d.sh_degree, tcfg.backend
+            )
             torch.testing.assert_close(fr.images["full01"], col[0].clamp(0, 1).permute(1, 2, 0), rtol=0, atol=1e-6)
 
     # other modes, latents only: zero init and pose-conditioned init match the rollout too
@@ -266,8 +307,14 @@ def test_drive_modes_come_from_one_table(loaded, tiny_run):
     with pytest.raises(ValueError, match="mode must be one of predictor/pose_init/"):
         DriveConfig(mode="nope")
     needs = {m: (c.needs_texture, c.needs_predictor) for m, c in LATENT_SOURCES.items()}
-    assert needs == {"predictor": (False, True), "pose_init": (False, True), "predictor_encoder_init": (True, True),
-                     "reinit": (True, True), "train_mean": (False, True), "encoder": (True, False)}
+    assert needs == {
+        "predictor": (False, True),
+        "pose_init": (False, True),
+        "predictor_encoder_init": (True, True),
+        "reinit": (True, True),
+        "train_mean": (False, True),
+        "encoder": (True, False),
+    }
     pred = small_predictor(loaded.net)
     d = Driver(tiny_run, DriveConfig(mode="reinit", reinit_every=3), loaded=loaded, predictor=pred)
     assert [d.texture_needed_at(t) for t in range(7)] == [True, False, False, True, False, False, True]
@@ -275,8 +322,9 @@ def test_drive_modes_come_from_one_table(loaded, tiny_run):
     assert not d.with_mode("predictor").needs_textures
     m = d.with_mode("train_mean")  # the predictor's training-mean latent, every frame, no texture
     m.start(FrameInputs(np.zeros(d.pose_dim), np.zeros(3), np.zeros(3)))
-    assert torch.equal(m.step(FrameInputs(np.zeros(d.pose_dim), np.zeros(3), np.zeros(3)), render=False).latents,
-                       pred.latent_mean)
+    assert torch.equal(
+        m.step(FrameInputs(np.zeros(d.pose_dim), np.zeros(3), np.zeros(3)), render=False).latents, pred.latent_mean
+    )
     e = d.with_mode("encoder")  # a plain constructor call sharing the run and predictor
     assert e.net is d.net and e.predictor is d.predictor and e.config.reinit_every == 3 and e.t == -1
     with pytest.raises(ValueError, match="trained InitialLatentNet"):
@@ -312,8 +360,24 @@ def test_cli_encoder_mode_writes_video_latents_metrics_and_figure(tiny_run, tiny
     import imageio.v2 as imageio
 
     out = tmp_path / "drive"
-    rc = main(["--run", str(tiny_run), "--motion", str(tiny_capture), "--split", "test", "--mode", "encoder",
-               "--image-scale", "0.5", "--lpips", "off", "--out", str(out)])
+    rc = main(
+        [
+            "--run",
+            str(tiny_run),
+            "--motion",
+            str(tiny_capture),
+            "--split",
+            "test",
+            "--mode",
+            "encoder",
+            "--image-scale",
+            "0.5",
+            "--lpips",
+            "off",
+            "--out",
+            str(out),
+        ]
+    )
     assert rc == 0
     r = imageio.get_reader(out / "drive.mp4")
     assert r.count_frames() == 3 and r.get_data(0).shape[:2] == (64, 64)
@@ -336,7 +400,9 @@ def test_cli_bad_inputs_exit_2_naming_file_and_field(tiny_run, tiny_capture, tmp
     assert "config.json" in capsys.readouterr().err
 
     wide = tmp_path / "wide.npz"
-    np.savez(wide, pose=np.zeros((3, P + 2)), root_rotation=np.zeros((3, 3)), root_translation=np.zeros((3, 3)), fps=15.0)
+    np.savez(
+        wide, pose=np.zeros((3, P + 2)), root_rotation=np.zeros((3, 3)), root_translation=np.zeros((3, 3)), fps=15.0
+    )
     assert main(["--run", str(tiny_run), "--motion", str(wide), *common]) == 2
     err = capsys.readouterr().err
     assert "wide.npz: pose" in err and f"[T, {P}]" in err
@@ -349,7 +415,9 @@ def test_cli_bad_inputs_exit_2_naming_file_and_field(tiny_run, tiny_capture, tmp
     err = capsys.readouterr().err
     assert "nan.npz: root_rotation" in err and "NaN" in err
 
-    assert main(["--run", str(tiny_run), "--motion", str(nan), "--out", str(tmp_path / "o"), "--reinit-every", "0"]) == 2
+    assert (
+        main(["--run", str(tiny_run), "--motion", str(nan), "--out", str(tmp_path / "o"), "--reinit-every", "0"]) == 2
+    )
     assert "reinit_every" in capsys.readouterr().err
     good = tmp_path / "good.npz"
     np.savez(good, pose=np.zeros((3, P)), root_rotation=np.zeros((3, 3)), root_translation=np.zeros((3, 3)), fps=15.0)
@@ -371,12 +439,32 @@ def test_cli_predictor_mode_loads_the_runs_trained_predictor(tiny_run, tiny_capt
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)  # the module's run stays without a predictor
     model = PredictorConfig(history=4, width=16, heads=2, ff=32, token_hidden=8, initial_hidden=16)
-    train_predictor(run, PredictorTrainConfig(steps=1, batch_size=1, window=2, model=model), device="cpu", evaluate=False)
+    train_predictor(
+        run, PredictorTrainConfig(steps=1, batch_size=1, window=2, model=model), device="cpu", evaluate=False
+    )
     assert (run / "predictor" / "latest.pt").exists()
     out = tmp_path / "drive"
-    rc = main(["--run", str(run), "--motion", str(tiny_capture), "--mode", "predictor_encoder_init", "--count", "2",
-               "--capture-cameras", "full01", "--image-scale", "0.25", "--lpips", "off", "--no-write-frames",
-               "--out", str(out)])
+    rc = main(
+        [
+            "--run",
+            str(run),
+            "--motion",
+            str(tiny_capture),
+            "--mode",
+            "predictor_encoder_init",
+            "--count",
+            "2",
+            "--capture-cameras",
+            "full01",
+            "--image-scale",
+            "0.25",
+            "--lpips",
+            "off",
+            "--no-write-frames",
+            "--out",
+            str(out),
+        ]
+    )
     assert rc == 0
     info = json.loads((out / "drive.json").read_text())
     assert info["mode"] == "predictor_encoder_init" and info["frames"] == 2 and info["ground_truth"]
@@ -392,8 +480,12 @@ def test_compare_figure_renders_each_latent_source(loaded, tiny_run, tiny_captur
     from gsavatar.drive.compare import CompareArgs, compare
 
     scene = loaded.scene
-    d = Driver(tiny_run, DriveConfig(mode="encoder", capture_cameras=("full01",), image_scale=0.5), loaded=loaded,
-               predictor=None)
+    d = Driver(
+        tiny_run,
+        DriveConfig(mode="encoder", capture_cameras=("full01",), image_scale=0.5),
+        loaded=loaded,
+        predictor=None,
+    )
     motion = load_driving_motion(tiny_capture, scene.capture.rig, d.fps, split="test")
     frames = d.drive(motion)
     (tmp_path / "enc").mkdir()
@@ -421,9 +513,34 @@ def test_latent_plot_shows_encoder_and_predictor_latents(tiny_run, tmp_path):
 
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)
-    assert train_main(["predictor", "--run", str(run), "--steps", "2", "--window", "2", "--batch-size", "2",
-                       "--model.history", "3", "--model.width", "16", "--model.heads", "2", "--model.ff", "32",
-                       "--model.latent-pca", "global", "--model.latent-pca-components", "4"]) == 0
+    assert (
+        train_main(
+            [
+                "predictor",
+                "--run",
+                str(run),
+                "--steps",
+                "2",
+                "--window",
+                "2",
+                "--batch-size",
+                "2",
+                "--model.history",
+                "3",
+                "--model.width",
+                "16",
+                "--model.heads",
+                "2",
+                "--model.ff",
+                "32",
+                "--model.latent-pca",
+                "global",
+                "--model.latent-pca-components",
+                "4",
+            ]
+        )
+        == 0
+    )
     out = tmp_path / "fig" / "states.png"
     res = write_latent_plot(LatentPlotArgs(run=run, out=out))
     assert out.exists() and out.with_suffix(".json").exists()

@@ -47,12 +47,24 @@ def driver(tiny_dataset) -> Driver:
             if "basis" in name or name.startswith("sh"):
                 p.add_(torch.randn(p.shape, generator=g) * 0.05)
     av = net.avatar
-    pc = PredictorConfig(history=4, width=16, heads=2, ff=32, latent_dim=av.latent_in, token_hidden=8,
-                         latent_pca_components=4, initial_hidden=16)
+    pc = PredictorConfig(
+        history=4,
+        width=16,
+        heads=2,
+        ff=32,
+        latent_dim=av.latent_in,
+        token_hidden=8,
+        latent_pca_components=4,
+        initial_hidden=16,
+    )
     pred = AppearancePredictor(pc, av.num_anchors, np.arange(0, av.pose_dim, 5), av.pose_dim, seed=1).eval()
     torch.nn.init.normal_(pred.head.weight, std=0.1)
-    return Driver(Path("<untrained tiny>"), DriveConfig(mode="predictor", device="cpu"), loaded=LoadedRun(net, scene, cfg, 0),
-                  predictor=pred)
+    return Driver(
+        Path("<untrained tiny>"),
+        DriveConfig(mode="predictor", device="cpu"),
+        loaded=LoadedRun(net, scene, cfg, 0),
+        predictor=pred,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -95,15 +107,19 @@ def test_live_gaussians_are_the_avatars(driver, motion):
         with torch.no_grad():
             av = ref.net(ref.check_inputs(x).batch(lat), sh_degree=ref.sh_degree).avatar
         np.testing.assert_allclose(g.centers, av.means[0].numpy(), atol=1e-6)
-        np.testing.assert_allclose(g.covariances, covariances_from(av.quats[0], av.scales[0]).numpy(), rtol=1e-5,
-                                   atol=1e-10)
+        np.testing.assert_allclose(
+            g.covariances, covariances_from(av.quats[0], av.scales[0]).numpy(), rtol=1e-5, atol=1e-10
+        )
         np.testing.assert_allclose(g.rgbs, sh_to_rgb(av.sh[0], av.means[0], eye, ref.sh_degree).numpy(), atol=1e-5)
         np.testing.assert_allclose(g.opacities[:, 0], av.opacities[0].numpy(), atol=1e-7)
     assert set(live.timings) >= {"predictor", "avatar", "covariance + SH -> RGB"} and live.frames == 3
     # a pose offset moves only part of the body (locality): a wrist parameter leaves the feet in place
     rig = driver.scene.capture.rig
-    slot = next(i for i, j in enumerate(rig.slot_joints()) if "wrist" in rig.joints[j].name.lower()
-                or "hand" in rig.joints[j].name.lower())
+    slot = next(
+        i
+        for i, j in enumerate(rig.slot_joints())
+        if "wrist" in rig.joints[j].name.lower() or "hand" in rig.joints[j].name.lower()
+    )
     live.pose_offset[slot] = 1.0
     moved = live.gaussians(motion_inputs(motion, 2), lat, eye)
     d = np.linalg.norm(moved.centers - g.centers, axis=1)
@@ -146,10 +162,22 @@ class Chromium:
 
         self.dir = Path(tempfile.mkdtemp(dir=tmp, prefix="chromium"))
         self.proc = subprocess.Popen(
-            [shutil.which("chromium"), "--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
-             f"--window-size={size[0]},{size[1]}", "--remote-debugging-port=0", f"--user-data-dir={self.dir}",
-             "--no-first-run", "--hide-scrollbars", "about:blank"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            [
+                shutil.which("chromium"),
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--enable-unsafe-swiftshader",
+                f"--window-size={size[0]},{size[1]}",
+                "--remote-debugging-port=0",
+                f"--user-data-dir={self.dir}",
+                "--no-first-run",
+                "--hide-scrollbars",
+                "about:blank",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         port_file = self.dir / "DevToolsActivePort"
         t0 = time.time()
         while not (port_file.exists() and port_file.read_text().strip()):
@@ -161,8 +189,9 @@ class Chromium:
         pages = json.load(urllib.request.urlopen(f"http://127.0.0.1:{port}/json"))
         self.ws = connect(next(p for p in pages if p["type"] == "page")["webSocketDebuggerUrl"], max_size=None)
         self.id = 0
-        self.call("Emulation.setDeviceMetricsOverride", width=size[0], height=size[1], deviceScaleFactor=1,
-                  mobile=False)
+        self.call(
+            "Emulation.setDeviceMetricsOverride", width=size[0], height=size[1], deviceScaleFactor=1, mobile=False
+        )
         self.call("Page.navigate", url=url)
 
     def call(self, method: str, **params) -> dict:
@@ -253,8 +282,10 @@ def test_viewer_in_headless_chromium(driver, motion, tmp_path):
             if diff_play > 0.05:
                 break
         st = v._state
-        state = (f"frames seen {sorted(seen)}, {v.frames_generated - n0} generated in {time.time() - t0:.1f} s "
-                 f"({st.fps_ema:.1f} frames/s), error {st.error!r}, playing {st.playing}, {_loop_state(v)}")
+        state = (
+            f"frames seen {sorted(seen)}, {v.frames_generated - n0} generated in {time.time() - t0:.1f} s "
+            f"({st.fps_ema:.1f} frames/s), error {st.error!r}, playing {st.playing}, {_loop_state(v)}"
+        )
         assert len(seen) > 1 and v.frames_generated - n0 > 2, f"no new frame while playing: {state}"
         assert diff_play > 0.05, f"the page did not change while playing ({diff_play:.4f}): {state}"
         # paused: the same frame, the same pixels

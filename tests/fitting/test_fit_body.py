@@ -68,8 +68,14 @@ def arm_setup():
     from tests.prep_fixtures import arm_rig
 
     rig = arm_rig()
-    jmap = {"MidHip": ["Hips"], "Neck": ["Spine"], "LShoulder": ["LeftArm"], "LElbow": ["LeftForeArm"],
-            "LWrist": ["LeftHand"], "LBigToe": ["LeftFinger"]}
+    jmap = {
+        "MidHip": ["Hips"],
+        "Neck": ["Spine"],
+        "LShoulder": ["LeftArm"],
+        "LElbow": ["LeftForeArm"],
+        "LWrist": ["LeftHand"],
+        "LBigToe": ["LeftFinger"],
+    }
     return rig, jmap
 
 
@@ -104,8 +110,9 @@ def test_fit_recovers_a_hand_made_pose(tmp_path):
     kp = synthetic_keypoints(J, cams, jm, noise_px=0.0, outlier_fraction=0.0, drop_fraction=0.0)
     tri = triangulate(kp, cams)
     res = fit_sequence(rig, cams, kp, jm, tri.points, tri.inliers, FitConfig(w_pose=1e-4))
-    Jf = pose_joints(rig, *(torch.as_tensor(res[k], dtype=torch.float64)
-                            for k in ("pose", "root_rotation", "root_translation"))).numpy()
+    Jf = pose_joints(
+        rig, *(torch.as_tensor(res[k], dtype=torch.float64) for k in ("pose", "root_rotation", "root_translation"))
+    ).numpy()
     err_mm = 1000 * np.linalg.norm(Jf[:, jm.joints] - J[:, jm.joints], axis=-1)
     assert err_mm.mean() < 3.0, err_mm
     assert np.nanmax(res["reprojection_px"]) < 1.0
@@ -115,7 +122,9 @@ def test_openpose_and_coco_wholebody_readers(tmp_path):
     a = np.arange(75, dtype=float).reshape(25, 3) / 100
     p = tmp_path / "00000003_keypoints.json"
     weak = np.full(75, 0.01)
-    p.write_text(json.dumps({"people": [{"pose_keypoints_2d": weak.tolist()}, {"pose_keypoints_2d": a.ravel().tolist()}]}))
+    p.write_text(
+        json.dumps({"people": [{"pose_keypoints_2d": weak.tolist()}, {"pose_keypoints_2d": a.ravel().tolist()}]})
+    )
     np.testing.assert_allclose(read_keypoint_file(p, "body25"), a)  # the more confident person
     xy = np.random.default_rng(0).uniform(0, 100, (133, 2))
     sc = np.linspace(0.1, 1, 133)
@@ -178,8 +187,24 @@ def tiny_fit_inputs(tiny_capture, tmp_path_factory):
 def run_fit(capture: Path, kp_dir: Path, out: Path, *extra: str) -> int:
     from gsavatar.prep.cli import main
 
-    return main(["fit-body", "--capture", str(capture), "--keypoints", str(kp_dir), "--out", str(out),
-                 "--fit.steps", "300", "--fit.root-steps", "60", "--shard-frames", "6", *extra])
+    return main(
+        [
+            "fit-body",
+            "--capture",
+            str(capture),
+            "--keypoints",
+            str(kp_dir),
+            "--out",
+            str(out),
+            "--fit.steps",
+            "300",
+            "--fit.root-steps",
+            "60",
+            "--shard-frames",
+            "6",
+            *extra,
+        ]
+    )
 
 
 def test_fit_body_writes_a_capture_that_prep_takes_and_resumes(tiny_capture, tiny_fit_inputs, tmp_path):

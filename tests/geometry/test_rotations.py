@@ -17,8 +17,15 @@ def hamilton(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Quaternion product a * b, wxyz. [..., 4] x [..., 4] -> [..., 4]"""
     aw, ax, ay, az = a.unbind(-1)
     bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        -1,
+    )
 
 
 def oracle(q: torch.Tensor) -> torch.Tensor:
@@ -52,8 +59,9 @@ def test_quat_to_matrix_against_the_oracle_forward_and_gradient(dtype):
     torch.testing.assert_close(R.detach() @ R.detach().mT, eye, **TOL[dtype])
     torch.testing.assert_close(torch.linalg.det(R.detach()), torch.ones(64, dtype=dtype), **TOL[dtype])
     assert torch.equal(quat_to_matrix(torch.zeros(2, 4, dtype=dtype)), torch.eye(3, dtype=dtype).expand(2, 3, 3))
-    torch.testing.assert_close(matrix_to_quat(R.detach()).abs(), (x / x.norm(dim=-1, keepdim=True)).detach().abs(),
-                               **TOL[dtype])
+    torch.testing.assert_close(
+        matrix_to_quat(R.detach()).abs(), (x / x.norm(dim=-1, keepdim=True)).detach().abs(), **TOL[dtype]
+    )
 
 
 def test_quat_to_matrix_matches_roma():

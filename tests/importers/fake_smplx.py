@@ -20,14 +20,27 @@ from gsavatar.importers.smplx_model import SMPLX_JOINT_NAMES, SMPLX_PARENTS
 
 J = 55
 _BODY_OFFSETS = {  # offset of each joint's head from its parent's, metres (left side; right mirrors x)
-    "pelvis": (0.003, -0.35, 0.012), "left_hip": (0.06, -0.09, 0.0), "spine1": (0.0, 0.11, -0.02),
-    "left_knee": (0.04, -0.38, 0.0), "spine2": (0.0, 0.13, 0.0), "left_ankle": (0.0, -0.40, -0.04),
-    "spine3": (0.0, 0.05, 0.0), "left_foot": (0.02, -0.06, 0.12), "neck": (0.0, 0.22, -0.03),
-    "left_collar": (0.07, 0.12, -0.01), "head": (0.0, 0.09, 0.05), "left_shoulder": (0.12, 0.03, 0.0),
-    "left_elbow": (0.26, 0.0, 0.0), "left_wrist": (0.25, 0.0, 0.0), "jaw": (0.0, -0.01, 0.03),
+    "pelvis": (0.003, -0.35, 0.012),
+    "left_hip": (0.06, -0.09, 0.0),
+    "spine1": (0.0, 0.11, -0.02),
+    "left_knee": (0.04, -0.38, 0.0),
+    "spine2": (0.0, 0.13, 0.0),
+    "left_ankle": (0.0, -0.40, -0.04),
+    "spine3": (0.0, 0.05, 0.0),
+    "left_foot": (0.02, -0.06, 0.12),
+    "neck": (0.0, 0.22, -0.03),
+    "left_collar": (0.07, 0.12, -0.01),
+    "head": (0.0, 0.09, 0.05),
+    "left_shoulder": (0.12, 0.03, 0.0),
+    "left_elbow": (0.26, 0.0, 0.0),
+    "left_wrist": (0.25, 0.0, 0.0),
+    "jaw": (0.0, -0.01, 0.03),
     "left_eye": (0.03, 0.06, 0.08),
-    "left_index1": (0.09, 0.005, 0.025), "left_middle1": (0.095, 0.005, 0.0), "left_pinky1": (0.075, -0.005, -0.04),
-    "left_ring1": (0.085, 0.0, -0.02), "left_thumb1": (0.03, -0.015, 0.03),
+    "left_index1": (0.09, 0.005, 0.025),
+    "left_middle1": (0.095, 0.005, 0.0),
+    "left_pinky1": (0.075, -0.005, -0.04),
+    "left_ring1": (0.085, 0.0, -0.02),
+    "left_thumb1": (0.03, -0.015, 0.03),
 }
 _PHALANX = {"thumb": (0.025, -0.005, 0.02)}  # offsets of finger joints 2 and 3 from the previous one
 HEAD_JOINTS = ("head", "jaw", "left_eye", "right_eye")
@@ -52,8 +65,16 @@ def rest_heads() -> np.ndarray:
     return h
 
 
-def fake_smplx_arrays(seed: int = 0, shape_cols: int = 20, posedirs_scale: float = 0.0, expr_scale: float = 0.002,
-                      influences: int = 4, rings: int = 12, segs: int = 16, uv: bool = False) -> dict[str, np.ndarray]:
+def fake_smplx_arrays(
+    seed: int = 0,
+    shape_cols: int = 20,
+    posedirs_scale: float = 0.0,
+    expr_scale: float = 0.002,
+    influences: int = 4,
+    rings: int = 12,
+    segs: int = 16,
+    uv: bool = False,
+) -> dict[str, np.ndarray]:
     """The arrays of a fake SMPLX_NEUTRAL.npz.
 
     shape_cols: columns of ``shapedirs`` (20: v1.0 layout, 10 shape + 10 expression; 400: v1.1, 300 + 100).
@@ -111,7 +132,7 @@ def fake_smplx_arrays(seed: int = 0, shape_cols: int = 20, posedirs_scale: float
         if parents[j] >= 0:
             weights[i, parents[j]] += 0.5 * (1 - t) ** 2 + 0.01
         if children[j]:
-            weights[i, children[j][0]] += 0.5 * t ** 2 + 0.01
+            weights[i, children[j][0]] += 0.5 * t**2 + 0.01
         extra = influences - np.count_nonzero(weights[i])
         if extra > 0:
             near = [b for b in np.lexsort((np.arange(J), hops[j])) if weights[i, b] == 0][:extra]
@@ -170,8 +191,14 @@ def write_fake_smplx(path: Path, **kw) -> Path:
     return path
 
 
-def random_fit(num_frames: int, seed: int = 1, num_betas: int = 10, num_expression: int = 10,
-               expression: bool = False, hand_cols: int = 45) -> dict[str, np.ndarray]:
+def random_fit(
+    num_frames: int,
+    seed: int = 1,
+    num_betas: int = 10,
+    num_expression: int = 10,
+    expression: bool = False,
+    hand_cols: int = 45,
+) -> dict[str, np.ndarray]:
     """A short fit with moderate angles (as ``smpl_params.npz`` holds it), float32."""
     rng = np.random.default_rng(seed)
     F = num_frames

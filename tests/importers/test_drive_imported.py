@@ -37,8 +37,13 @@ def body(model_path):
 def write_amass(path: Path, F: int = 9, fps: float | None = 60.0, seed: int = 0, width: int = 165, **extra) -> dict:
     """An AMASS-style SMPL-X file (random poses ~0.3 rad, translations ~0.5 m, the release's other keys)."""
     rng = np.random.default_rng(seed)
-    arrays = {"poses": rng.normal(0, 0.3, (F, width)), "trans": rng.normal(0, 0.5, (F, 3)),
-              "betas": rng.normal(0, 1, 16), "gender": np.array("neutral"), "surface_model_type": np.array("smplx")}
+    arrays = {
+        "poses": rng.normal(0, 0.3, (F, width)),
+        "trans": rng.normal(0, 0.5, (F, 3)),
+        "betas": rng.normal(0, 1, 16),
+        "gender": np.array("neutral"),
+        "surface_model_type": np.array("smplx"),
+    }
     if fps is not None:
         arrays["mocap_frame_rate"] = np.array(fps)
     arrays |= extra
@@ -49,8 +54,9 @@ def write_amass(path: Path, F: int = 9, fps: float | None = 60.0, seed: int = 0,
 def surface(template, rig, pose, rr, rt) -> np.ndarray:
     t = lambda x: torch.as_tensor(np.asarray(x), dtype=torch.float64)  # noqa: E731
     T = skinning_transforms(rig, t(pose), t(rr), t(rt))
-    return lbs(t(template.vertices), torch.as_tensor(template.skin_indices.astype(np.int64)), t(template.skin_weights),
-               T).numpy()
+    return lbs(
+        t(template.vertices), torch.as_tensor(template.skin_indices.astype(np.int64)), t(template.skin_weights), T
+    ).numpy()
 
 
 # --------------------------------------------------------------------------- AMASS
@@ -83,8 +89,10 @@ def test_amass_motion_on_the_smplx_rig(body, tmp_path):
     from scipy.spatial.transform import Rotation, Slerp
 
     k = rig.joint_index("left_knee") - 1  # its parameter's index
-    sl = Slerp([2, 3], Rotation.from_rotvec(a["poses"][2:4, 3 + 3 * k: 6 + 3 * k]))
-    assert np.allclose(Rotation.from_rotvec(r.pose[1, 3 * k: 3 * k + 3]).as_matrix(), sl([2.4]).as_matrix()[0], atol=1e-6)
+    sl = Slerp([2, 3], Rotation.from_rotvec(a["poses"][2:4, 3 + 3 * k : 6 + 3 * k]))
+    assert np.allclose(
+        Rotation.from_rotvec(r.pose[1, 3 * k : 3 * k + 3]).as_matrix(), sl([2.4]).as_matrix()[0], atol=1e-6
+    )
 
 
 def test_amass_errors_name_file_and_key(body, tmp_path):
@@ -135,17 +143,50 @@ def test_import_prepare_train_and_drive_from_bvh_and_amass(tmp_path, capsys):
     cap, ds, run = tmp_path / "cap", tmp_path / "ds", tmp_path / "run"
     assert run_import("thuman4", src, model_path, cap) == 0
     assert prep_main(["all", "--capture", str(cap), "--out", str(ds), *PREP_ARGS]) == 0
-    assert train_main(["avatar", "--dataset", str(ds), "--out", str(run), "--preset", "tiny", "--steps", "3",
-                       "--lpips", "off", "--image-scale", "0.5", "--no-evaluate"]) == 0
+    assert (
+        train_main(
+            [
+                "avatar",
+                "--dataset",
+                str(ds),
+                "--out",
+                str(run),
+                "--preset",
+                "tiny",
+                "--steps",
+                "3",
+                "--lpips",
+                "off",
+                "--image-scale",
+                "0.5",
+                "--no-evaluate",
+            ]
+        )
+        == 0
+    )
     model = PredictorConfig(history=4, width=16, heads=2, ff=32, token_hidden=8, initial_hidden=16)
-    train_predictor(run, PredictorTrainConfig(steps=1, batch_size=1, window=2, model=model), device="cpu", evaluate=False)
+    train_predictor(
+        run, PredictorTrainConfig(steps=1, batch_size=1, window=2, model=model), device="cpu", evaluate=False
+    )
 
     from gsavatar.data_schema import load_capture
 
     rig = load_capture(cap).rig
     heads = rig.heads().astype(np.float64)
-    common = ["--run", str(run), "--cameras", "orbit", "--orbit-views", "1", "--orbit-size", "32", "--lpips", "off",
-              "--device", "cpu"]
+    common = [
+        "--run",
+        str(run),
+        "--cameras",
+        "orbit",
+        "--orbit-views",
+        "1",
+        "--orbit-size",
+        "32",
+        "--lpips",
+        "off",
+        "--device",
+        "cpu",
+    ]
     # a Biovision-named BVH: limbs driven, spine2 and the hands/face listed in one warning line
     bvh = bvh_from_spec(tmp_path / "boxing_like.bvh", SPECS["biovision"][0], heads, F=12)
     out = tmp_path / "drive_bvh"
@@ -157,22 +198,27 @@ def test_import_prepare_train_and_drive_from_bvh_and_amass(tmp_path, capsys):
     assert info["frames"] == 3 and len(info["motion_warnings"]) == 1
     z = np.load(out / "latents.npz")
     assert z["pose"].shape == (3, rig.pose_dim) and np.abs(z["pose"]).max() > 0.3
-    frame = (out / "frames" / "orbit00" / "000002.png")
+    frame = out / "frames" / "orbit00" / "000002.png"
     import cv2
 
     assert cv2.imread(str(frame)).max() > 0  # the avatar is in view
     # custom names: refused (exit 2, file and --joint-map named), then driven through a joint map
     base = SPECS["smplx"][0][:22]
     new = {n: f"bone{i}" for i, (n, _, _) in enumerate(base)}
-    custom = bvh_from_spec(tmp_path / "custom.bvh", [(new[n], None if p is None else new[p], q) for n, p, q in base],
-                           heads)
+    custom = bvh_from_spec(
+        tmp_path / "custom.bvh", [(new[n], None if p is None else new[p], q) for n, p, q in base], heads
+    )
     assert drive_main([*common, "--motion", str(custom), "--count", "2", "--out", str(tmp_path / "d2")]) == 2
     err = capsys.readouterr().err
     assert "custom.bvh" in err and "--joint-map" in err
     jm = tmp_path / "names.json"
     jm.write_text(json.dumps({n: v for n, v in new.items()}))
-    assert drive_main([*common, "--motion", str(custom), "--joint-map", str(jm), "--count", "2",
-                       "--out", str(tmp_path / "d3")]) == 0
+    assert (
+        drive_main(
+            [*common, "--motion", str(custom), "--joint-map", str(jm), "--count", "2", "--out", str(tmp_path / "d3")]
+        )
+        == 0
+    )
     # AMASS at 60 fps -> the capture's 30 fps
     amass = tmp_path / "amass.npz"
     write_amass(amass, F=7)
@@ -198,19 +244,62 @@ def test_other_layouts_prepare_train_and_drive(layout, tmp_path):
     cap, ds, run = tmp_path / "cap", tmp_path / "ds", tmp_path / "run"
     assert run_import(layout, src, model_path, cap) == 0
     assert prep_main(["all", "--capture", str(cap), "--out", str(ds), *PREP_ARGS]) == 0
-    assert train_main(["avatar", "--dataset", str(ds), "--out", str(run), "--preset", "tiny", "--steps", "3",
-                       "--lpips", "off", "--image-scale", "0.5", "--no-evaluate"]) == 0
+    assert (
+        train_main(
+            [
+                "avatar",
+                "--dataset",
+                str(ds),
+                "--out",
+                str(run),
+                "--preset",
+                "tiny",
+                "--steps",
+                "3",
+                "--lpips",
+                "off",
+                "--image-scale",
+                "0.5",
+                "--no-evaluate",
+            ]
+        )
+        == 0
+    )
     from gsavatar.models.predictor import PredictorConfig
     from gsavatar.train.predictor import PredictorTrainConfig, train_predictor
 
     model = PredictorConfig(history=4, width=16, heads=2, ff=32, token_hidden=8, initial_hidden=16)
-    train_predictor(run, PredictorTrainConfig(steps=1, batch_size=1, window=2, model=model), device="cpu", evaluate=False)
+    train_predictor(
+        run, PredictorTrainConfig(steps=1, batch_size=1, window=2, model=model), device="cpu", evaluate=False
+    )
     heads = load_capture(cap).rig.heads().astype(np.float64)
     bvh = bvh_from_spec(tmp_path / "smplx_names.bvh", SPECS["smplx"][0][:22], heads, F=6)
     out = tmp_path / "drive"
-    assert drive_main(["--run", str(run), "--cameras", "orbit", "--orbit-views", "1", "--orbit-size", "32",
-                       "--lpips", "off", "--device", "cpu", "--motion", str(bvh), "--count", "2",
-                       "--out", str(out)]) == 0
+    assert (
+        drive_main(
+            [
+                "--run",
+                str(run),
+                "--cameras",
+                "orbit",
+                "--orbit-views",
+                "1",
+                "--orbit-size",
+                "32",
+                "--lpips",
+                "off",
+                "--device",
+                "cpu",
+                "--motion",
+                str(bvh),
+                "--count",
+                "2",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     info = json.loads((out / "drive.json").read_text())
     assert info["frames"] == 2
     assert np.abs(np.load(out / "latents.npz")["pose"]).max() > 0.1  # the BVH drives the imported rig
@@ -236,5 +325,24 @@ def test_smplx_import_without_uvs_trains(tmp_path):
     atlas = np.load(ds / "uv_atlas" / "atlas.npz")
     assert h.anchors.uv is not None and np.isfinite(h.anchors.uv).all()
     assert atlas["uvs"].shape[0] > 0
-    assert train_main(["avatar", "--dataset", str(ds), "--out", str(tmp_path / "run"), "--preset", "tiny",
-                       "--steps", "2", "--lpips", "off", "--image-scale", "0.5", "--no-evaluate"]) == 0
+    assert (
+        train_main(
+            [
+                "avatar",
+                "--dataset",
+                str(ds),
+                "--out",
+                str(tmp_path / "run"),
+                "--preset",
+                "tiny",
+                "--steps",
+                "2",
+                "--lpips",
+                "off",
+                "--image-scale",
+                "0.5",
+                "--no-evaluate",
+            ]
+        )
+        == 0
+    )

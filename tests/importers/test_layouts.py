@@ -36,7 +36,9 @@ F = 6  # frames of the fit
 W, H = 96, 128  # image size
 LOST = (1, 2)  # (camera index, frame) of the lost view
 PREP_ARGS = ["--workers", "1", "--project.tex-size", "128", "--no-figures"]  # as tests/reliability/helpers.py
-PROJ_TOL_PX = 1e-6  # float64 throughout; observed 0 (thuman4), 4e-14 px (avatarrex, with distortion), 3e-13 px (actorshq)
+PROJ_TOL_PX = (
+    1e-6  # float64 throughout; observed 0 (thuman4), 4e-14 px (avatarrex, with distortion), 3e-13 px (actorshq)
+)
 LAYOUT_NAMES = ["thuman4", "avatarrex", "actorshq"]
 
 
@@ -60,8 +62,11 @@ def write_actorshq_calibration(file: Path, cams: list) -> None:
 def source_cameras(layout: str) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """(source key, K [3,3], R [3,3], T [3], dist [5]) of 4 cameras around the body, metres, OpenCV axes."""
     out = []
-    keys = {"thuman4": ["cam00", "cam01", "cam02", "cam03"], "avatarrex": ["22010708", "22010710", "cam 3", "22070938"],
-            "actorshq": ["Cam001", "Cam002", "Cam003", "Cam004"]}[layout]
+    keys = {
+        "thuman4": ["cam00", "cam01", "cam02", "cam03"],
+        "avatarrex": ["22010708", "22010710", "cam 3", "22070938"],
+        "actorshq": ["Cam001", "Cam002", "Cam003", "Cam004"],
+    }[layout]
     for i, key in enumerate(keys):
         a = 2 * np.pi * i / len(keys) + 0.3
         R, T = look_at(np.array([3.0 * np.sin(a), -0.2 + 0.3 * i, 3.0 * np.cos(a)]), np.array([0.0, -0.4, 0.0]))
@@ -81,8 +86,12 @@ def posed_vertices(model_path: Path, fit: dict) -> tuple[np.ndarray, np.ndarray]
     args = [torch.from_numpy(a) for a in (m.pose, m.root_rotation, m.root_translation)]
     with torch.no_grad():
         T = skinning_transforms(RigTensors(body.rig), *args)
-        v = lbs(torch.from_numpy(body.template.vertices), torch.from_numpy(body.template.skin_indices.astype(np.int64)),
-                torch.from_numpy(body.template.skin_weights), T)
+        v = lbs(
+            torch.from_numpy(body.template.vertices),
+            torch.from_numpy(body.template.skin_indices.astype(np.int64)),
+            torch.from_numpy(body.template.skin_weights),
+            T,
+        )
     return v.numpy().astype(np.float64), body.template.faces
 
 
@@ -96,9 +105,20 @@ def make_source(root: Path, layout: str, model_path: Path) -> Path:
     calib = {}
     for i, (key, K, R, T, dist) in enumerate(cams):
         if layout == "thuman4":  # flat K/R lists and a column T, as some THuman4.0 files spell them
-            calib[key] = {"K": K.ravel().tolist(), "R": R.ravel().tolist(), "T": T.reshape(3, 1).tolist(), "imgSize": [W, H]}
+            calib[key] = {
+                "K": K.ravel().tolist(),
+                "R": R.ravel().tolist(),
+                "T": T.reshape(3, 1).tolist(),
+                "imgSize": [W, H],
+            }
         elif layout == "avatarrex":
-            calib[key] = {"K": K.tolist(), "R": R.tolist(), "T": T.tolist(), "distCoeff": [dist.tolist()], "imgSize": [W, H]}
+            calib[key] = {
+                "K": K.tolist(),
+                "R": R.tolist(),
+                "T": T.tolist(),
+                "distCoeff": [dist.tolist()],
+                "imgSize": [W, H],
+            }
         for f in range(F):
             px = project(verts[f], K, R, T, dist).pixels
             mask = np.zeros((H, W), np.uint8)
@@ -142,8 +162,9 @@ def source(request, tmp_path_factory, model_path) -> tuple[str, Path]:
 
 
 def run_import(layout: str, src: Path, model_path: Path, out: Path, *extra: str) -> int:
-    return prep_main(["import", "--layout", layout, "--src", str(src), "--smplx-model", str(model_path),
-                      "--out", str(out), *extra])
+    return prep_main(
+        ["import", "--layout", layout, "--src", str(src), "--smplx-model", str(model_path), "--out", str(out), *extra]
+    )
 
 
 def test_import_validates(source, model_path, tmp_path):
@@ -198,15 +219,37 @@ def test_options_copy_frames_and_split(tmp_path, model_path):
     (tmp_path / "src").mkdir()
     src = make_source(tmp_path / "src", "avatarrex", model_path)
     out = tmp_path / "cap"
-    assert run_import("avatarrex", src, model_path, out, "--copy", "--frames", "0:5", "--cameras", "22010708",
-                      "cam02", "22070938", "--test-cameras", "22010708", "--test-frames", "3:5") == 0
+    assert (
+        run_import(
+            "avatarrex",
+            src,
+            model_path,
+            out,
+            "--copy",
+            "--frames",
+            "0:5",
+            "--cameras",
+            "22010708",
+            "cam02",
+            "22070938",
+            "--test-cameras",
+            "22010708",
+            "--test-frames",
+            "3:5",
+        )
+        == 0
+    )
     cap = load_capture(out)
     assert list(cap.cameras) == ["22010708", "cam02", "22070938"]  # the lost view's camera is not imported
     assert cap.num_frames == 5 and not cap.image_path("cam02", 0).is_symlink()
     assert cap.splits["test"].frames == [3, 4] and cap.splits["train"].frames == [0, 1, 2]
     # one camera cannot be both the train and the test camera: splits stay disjoint
-    assert run_import("avatarrex", src, model_path, tmp_path / "cap2", "--cameras", "22010708",
-                      "--test-cameras", "22010708") == 2
+    assert (
+        run_import(
+            "avatarrex", src, model_path, tmp_path / "cap2", "--cameras", "22010708", "--test-cameras", "22010708"
+        )
+        == 2
+    )
 
 
 def test_refuses_escapes_and_unlisted_missing_files(tmp_path, model_path, capsys):
@@ -248,8 +291,13 @@ def test_actorshq_csv_conventions_and_resolution(tmp_path, model_path, capsys):
         v = {k: float(x) for k, x in r.items() if k != "name"}
         world_from_cam = cv2.Rodrigues(np.array([v["rx"], v["ry"], v["rz"]]))[0]
         pc = (pts - np.array([v["tx"], v["ty"], v["tz"]])) @ world_from_cam  # = R_c2w^T (x - position)
-        hand = np.stack([v["fx"] * v["w"] * pc[:, 0] / pc[:, 2] + v["px"] * v["w"],
-                         v["fy"] * v["h"] * pc[:, 1] / pc[:, 2] + v["py"] * v["h"]], 1)
+        hand = np.stack(
+            [
+                v["fx"] * v["w"] * pc[:, 0] / pc[:, 2] + v["px"] * v["w"],
+                v["fy"] * v["h"] * pc[:, 1] / pc[:, 2] + v["py"] * v["h"],
+            ],
+            1,
+        )
         cam = imported.cameras[r["name"]]
         assert np.abs(hand - project(pts, cam.K, cam.R, cam.T, cam.dist).pixels).max() < PROJ_TOL_PX, r["name"]
     # the same source in the 2x folder only: found with --actorshq-resolution 2x, refused without it
@@ -258,6 +306,8 @@ def test_actorshq_csv_conventions_and_resolution(tmp_path, model_path, capsys):
     capsys.readouterr()
     assert run_import("actorshq", src, model_path, tmp_path / "b", "--actorshq-resolution", "2x") == 0
     assert json.loads((tmp_path / "b" / "import.json").read_text())["source_frames"] == list(range(F))
-    (src / "2x" / "calibration.csv").write_text("name,w,h,rx,ry,rz,tx,ty,tz,f,px,py\nCam001,96,128,0,0,0,0,0,3,1,0.5,0.5\n")
+    (src / "2x" / "calibration.csv").write_text(
+        "name,w,h,rx,ry,rz,tx,ty,tz,f,px,py\nCam001,96,128,0,0,0,0,0,3,1,0.5,0.5\n"
+    )
     assert run_import("actorshq", src, model_path, tmp_path / "c", "--actorshq-resolution", "2x") == 2
     assert "calibration.csv: header" in capsys.readouterr().err

@@ -46,9 +46,15 @@ ERR_TOL_MM = 5e-3  # smplx_error (float64) vs the direct float32 difference; obs
 
 def smplx_oracle(model_path: Path, fit: dict, num_betas: int, num_expression: int = 10, **kw):
     """(vertices [F, V, 3], joints [F, 55, 3]) from the ``smplx`` package, metres."""
-    m = smplx.SMPLX(str(model_path), gender="neutral", ext="npz", num_betas=num_betas,
-                    num_expression_coeffs=num_expression, batch_size=F,
-                    **({"use_pca": False, "flat_hand_mean": True} | kw))
+    m = smplx.SMPLX(
+        str(model_path),
+        gender="neutral",
+        ext="npz",
+        num_betas=num_betas,
+        num_expression_coeffs=num_expression,
+        batch_size=F,
+        **({"use_pca": False, "flat_hand_mean": True} | kw),
+    )
     t = {k: torch.from_numpy(np.asarray(v, np.float32)) for k, v in fit.items()}
     t["betas"] = t["betas"].expand(F, -1)
     with torch.no_grad():
@@ -67,8 +73,12 @@ def our_lbs(capture_body: Path, motion_override: dict | None = None):
     args = [torch.from_numpy(np.asarray(m[k], np.float32)) for k in ("pose", "root_rotation", "root_translation")]
     with torch.no_grad():
         T = skinning_transforms(rt, *args)
-        v = lbs(torch.from_numpy(tmpl.vertices), torch.from_numpy(tmpl.skin_indices.astype(np.int64)),
-                torch.from_numpy(tmpl.skin_weights), T)
+        v = lbs(
+            torch.from_numpy(tmpl.vertices),
+            torch.from_numpy(tmpl.skin_indices.astype(np.int64)),
+            torch.from_numpy(tmpl.skin_weights),
+            T,
+        )
         j = pose_joints(rt, *args)
     return v.numpy().astype(np.float64), j.numpy().astype(np.float64)
 
@@ -83,8 +93,10 @@ def grouped(model_path: Path, a: np.ndarray, b: np.ndarray) -> tuple[dict, dict]
     """Direct per-group mean/max |a - b| in mm over frames and vertices."""
     d = np.linalg.norm(a - b, axis=-1) * 1000.0  # [F, V]
     g = vertex_groups(load_smplx_model(model_path))
-    return ({n: float(d[:, g == i].mean()) for i, n in enumerate(BODY_GROUPS)},
-            {n: float(d[:, g == i].max()) for i, n in enumerate(BODY_GROUPS)})
+    return (
+        {n: float(d[:, g == i].mean()) for i, n in enumerate(BODY_GROUPS)},
+        {n: float(d[:, g == i].max()) for i, n in enumerate(BODY_GROUPS)},
+    )
 
 
 @pytest.fixture(scope="module")
@@ -190,8 +202,15 @@ def test_written_body_is_a_valid_capture(tmp_path, plain_model):
     fit = random_fit(F, expression=True)
     out = tmp_path / "capture"
     body = write_smplx_capture_body(out, load_smplx_model(plain_model), SmplxParams.from_arrays(fit))
-    cam = Camera("cam00", np.array([[500.0, 0, 256], [0, 500, 256], [0, 0, 1]]), np.eye(3), np.array([0, 0, 3.0]),
-                 np.zeros(5), 512, 512)
+    cam = Camera(
+        "cam00",
+        np.array([[500.0, 0, 256], [0, 500, 256], [0, 0, 1]]),
+        np.eye(3),
+        np.array([0, 0, 3.0]),
+        np.zeros(5),
+        512,
+        512,
+    )
     write_capture_metadata(out, 30.0, F, {"cam00": cam}, {"train": Split(list(range(F)), ["cam00"])})
     cap = load_capture(out, check_files=False)  # every schema check of template, rig and motion
     assert cap.rig.num_joints == 55 and cap.rig.pose_dim == 54 * 3
@@ -222,5 +241,6 @@ def test_rig_groups_follow_the_documented_table(plain_model):
     for side in ("left", "right"):
         hand = {p.removesuffix(".aa") for p in body.rig.groups[f"{side}_hand"]}
         assert len(hand) == 16 and f"{side}_wrist" in hand and all(n.startswith(side) for n in hand)
-    assert SMPLX_JOINT_GROUPS == {n: g for g, ps in body.rig.groups.items() for n in
-                                  (p.removesuffix(".aa") for p in ps)}
+    assert SMPLX_JOINT_GROUPS == {
+        n: g for g, ps in body.rig.groups.items() for n in (p.removesuffix(".aa") for p in ps)
+    }

@@ -74,20 +74,23 @@ def _rows(a):
     return w
 
 
-@pytest.mark.parametrize(("key", "change", "message"), [
-    ("posedirs", lambda a: None, "missing"),
-    ("J_regressor", lambda a: a["J_regressor"][:54], r"expected shape \[55, "),
-    ("J_regressor", lambda a: np.array(list(a["J_regressor"]), dtype=object), "pickled data is refused"),
-    ("weights", _rows, "rows do not sum to 1"),
-    ("weights", lambda a: -a["weights"], "negative"),
-    ("kintree_table", _bad_kintree, "kinematic tree"),
-    ("shapedirs", lambda a: np.where(np.arange(20) == 3, np.nan, a["shapedirs"]), "NaN"),
-    ("shapedirs", lambda a: a["shapedirs"][:, :, :12], ">= 20"),
-    ("posedirs", lambda a: a["posedirs"][:, :, :100], "486"),
-    ("f", lambda a: a["f"] + np.uint32(len(a["v_template"])), "out of range"),
-    ("v_template", lambda a: a["v_template"].astype(str), "real numbers"),
-    ("ft", lambda a: np.zeros((3, 3), np.int64), "one UV index per corner"),
-])
+@pytest.mark.parametrize(
+    ("key", "change", "message"),
+    [
+        ("posedirs", lambda a: None, "missing"),
+        ("J_regressor", lambda a: a["J_regressor"][:54], r"expected shape \[55, "),
+        ("J_regressor", lambda a: np.array(list(a["J_regressor"]), dtype=object), "pickled data is refused"),
+        ("weights", _rows, "rows do not sum to 1"),
+        ("weights", lambda a: -a["weights"], "negative"),
+        ("kintree_table", _bad_kintree, "kinematic tree"),
+        ("shapedirs", lambda a: np.where(np.arange(20) == 3, np.nan, a["shapedirs"]), "NaN"),
+        ("shapedirs", lambda a: a["shapedirs"][:, :, :12], ">= 20"),
+        ("posedirs", lambda a: a["posedirs"][:, :, :100], "486"),
+        ("f", lambda a: a["f"] + np.uint32(len(a["v_template"])), "out of range"),
+        ("v_template", lambda a: a["v_template"].astype(str), "real numbers"),
+        ("ft", lambda a: np.zeros((3, 3), np.int64), "one UV index per corner"),
+    ],
+)
 def test_bad_model_names_file_and_key(tmp_path, arrays, key, change, message):
     extra = {"vt": np.zeros((4, 2), np.float32)} if key == "ft" else {}
     path = save(tmp_path, arrays | extra, **{key: change(arrays)})
@@ -116,15 +119,18 @@ def test_fit_defaults_and_shapes(tmp_path):
     assert p.frames(slice(1, 3)).num_frames == 2
 
 
-@pytest.mark.parametrize(("key", "value", "message"), [
-    ("body_pose", None, "missing"),
-    ("body_pose", np.zeros((4, 60)), r"expected \[4, 63\]"),
-    ("transl", np.zeros((3, 3)), r"expected \[4, 3\]"),
-    ("betas", np.arange(20.0).reshape(2, 10), "vary across rows"),
-    ("global_orient", np.full((4, 3), np.nan), "NaN"),
-    ("left_hand_pose", np.zeros((4, 46)), "PCA"),
-    ("global_orient", np.zeros(3), r"expected \[F, 3\]"),
-])
+@pytest.mark.parametrize(
+    ("key", "value", "message"),
+    [
+        ("body_pose", None, "missing"),
+        ("body_pose", np.zeros((4, 60)), r"expected \[4, 63\]"),
+        ("transl", np.zeros((3, 3)), r"expected \[4, 3\]"),
+        ("betas", np.arange(20.0).reshape(2, 10), "vary across rows"),
+        ("global_orient", np.full((4, 3), np.nan), "NaN"),
+        ("left_hand_pose", np.zeros((4, 46)), "PCA"),
+        ("global_orient", np.zeros(3), r"expected \[F, 3\]"),
+    ],
+)
 def test_bad_fit_names_file_and_key(tmp_path, key, value, message):
     fit = random_fit(4)
     if value is None:

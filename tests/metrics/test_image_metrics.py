@@ -48,7 +48,7 @@ def test_psnr_matches_reference_without_mask():
 def test_psnr_masked_matches_reference(layout):
     x, y = _rand_pair(seed=1)
     g = torch.Generator().manual_seed(5)
-    m = (torch.rand(2, 1, 16, 14, generator=g) > 0.4)
+    m = torch.rand(2, 1, 16, 14, generator=g) > 0.4
     if layout == "soft":
         m = torch.rand(2, 1, 16, 14, generator=g, dtype=torch.float64)
     mask = {"b1hw": m, "soft": m, "bhw": m[:, 0], "bchw": m.expand(2, 3, 16, 14)}[layout]

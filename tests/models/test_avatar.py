@@ -83,7 +83,9 @@ def _region(prep, av, slots):
 
 
 def _outputs_equal(a, b, sel):
-    return all(torch.equal(x[:, sel], y[:, sel]) for x, y in zip(a[:5], b[:5])) and torch.equal(a.canonical_means[:, sel], b.canonical_means[:, sel])
+    return all(torch.equal(x[:, sel], y[:, sel]) for x, y in zip(a[:5], b[:5])) and torch.equal(
+        a.canonical_means[:, sel], b.canonical_means[:, sel]
+    )
 
 
 def _slots(prep, name):
@@ -93,12 +95,15 @@ def _slots(prep, name):
     return list(range(s, s + size))
 
 
-@pytest.mark.parametrize("variant,pca,param,identical", [
-    ("ours", "local", "LeftFinger.rx", True),  # hand group: local PCA keeps it within the hand
-    ("ours", "none", "LeftForeArm.r", True),
-    ("mmlps", "none", "LeftForeArm.r", False),  # MMLPs: full pose everywhere...
-    ("mmlps", "none", "LeftFinger.rx", True),  # ...except the localized hand/finger params
-])
+@pytest.mark.parametrize(
+    "variant,pca,param,identical",
+    [
+        ("ours", "local", "LeftFinger.rx", True),  # hand group: local PCA keeps it within the hand
+        ("ours", "none", "LeftForeArm.r", True),
+        ("mmlps", "none", "LeftForeArm.r", False),  # MMLPs: full pose everywhere...
+        ("mmlps", "none", "LeftFinger.rx", True),  # ...except the localized hand/finger params
+    ],
+)
 def test_local_masking(prep, variant, pca, param, identical):
     rig = prep[0]
     av = make(prep, model_preset("tiny", variant=variant, pca=pca), randomize=True)
@@ -146,7 +151,12 @@ def test_pca_modes(prep):
     loc = torch.as_tensor(pl.project(pose.numpy())).float()
     glob = torch.as_tensor(pg.project(pose.numpy())).float()
     p = pose.float()
-    for mode, train_want, eval_want in (("local", loc, loc), ("global", glob, glob), ("global_test_only", p, glob), ("none", p, p)):
+    for mode, train_want, eval_want in (
+        ("local", loc, loc),
+        ("global", glob, glob),
+        ("global_test_only", p, glob),
+        ("none", p, p),
+    ):
         av = make(prep, model_preset("tiny", pca=mode))
         torch.testing.assert_close(av.train().conditioning_pose(p), train_want, rtol=0, atol=1e-5)
         torch.testing.assert_close(av.eval().conditioning_pose(p), eval_want, rtol=0, atol=1e-5)
@@ -204,7 +214,13 @@ def test_param_groups_and_training_step(prep):
     opt = torch.optim.AdamW(groups, eps=1e-15, betas=(0.9, 0.999))
     pose = (torch.randn(2, rig.pose_dim) * 0.3).requires_grad_()  # grads through the polar path too
     out = av(pose, torch.randn(2, 3), torch.randn(2, 3), latents=torch.randn(2, h.num_anchors, 16))
-    loss = out.means.square().mean() + out.scales.mean() + out.sh.square().mean() + out.quats[..., 1].mean() + out.ctrl_disp.square().mean()
+    loss = (
+        out.means.square().mean()
+        + out.scales.mean()
+        + out.sh.square().mean()
+        + out.quats[..., 1].mean()
+        + out.ctrl_disp.square().mean()
+    )
     loss.backward()
     assert torch.isfinite(pose.grad).all() and pose.grad.abs().sum() > 0
     for name, p in av.named_parameters():
@@ -232,7 +248,11 @@ def test_polar_rotation_matches_svd_and_has_finite_grads():
 def test_device_dtype_agnostic_float64(prep):
     rig, h, *_ = prep
     av = make(prep, randomize=True).double()
-    out = av(torch.zeros(1, rig.pose_dim, dtype=torch.float64), torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, 3, dtype=torch.float64))
+    out = av(
+        torch.zeros(1, rig.pose_dim, dtype=torch.float64),
+        torch.zeros(1, 3, dtype=torch.float64),
+        torch.zeros(1, 3, dtype=torch.float64),
+    )
     assert out.means.dtype == torch.float64
     assert all(b.dtype in (torch.float64, torch.long) for b in av.buffers())
 

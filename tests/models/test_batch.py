@@ -23,8 +23,14 @@ def _net(parts) -> AvatarNet:
 
 def test_from_dict_of_dataset_items():
     B, P = 2, 5
-    items = {"pose": torch.zeros(B, P), "root_rotation": torch.zeros(B, 3), "root_translation": torch.ones(B, 3),
-             "face": torch.zeros(B, 0), "frame": torch.tensor([3, 4]), "image": torch.zeros(B, 3, 4, 4)}
+    items = {
+        "pose": torch.zeros(B, P),
+        "root_rotation": torch.zeros(B, 3),
+        "root_translation": torch.ones(B, 3),
+        "face": torch.zeros(B, 0),
+        "frame": torch.tensor([3, 4]),
+        "image": torch.zeros(B, 3, 4, 4),
+    }
     b = FrameBatch.from_dict(items)
     assert b.face is None and b.texture is None and b.latents is None and b.batch_size == B  # [B, 0] face: none
     items |= {"face": torch.ones(B, 3), "texture": torch.zeros(B, 3, 64, 64)}

@@ -57,8 +57,10 @@ def _manual_bilinear(m, uv):
         x1, y1 = min(x0 + 1, w - 1), min(y0 + 1, h - 1)
         fx, fy = x - x0, y - y0
         out[:, i] = (
-            m[:, :, y0, x0] * (1 - fx) * (1 - fy) + m[:, :, y0, x1] * fx * (1 - fy)
-            + m[:, :, y1, x0] * (1 - fx) * fy + m[:, :, y1, x1] * fx * fy
+            m[:, :, y0, x0] * (1 - fx) * (1 - fy)
+            + m[:, :, y0, x1] * fx * (1 - fy)
+            + m[:, :, y1, x0] * (1 - fx) * fy
+            + m[:, :, y1, x1] * fx * fy
         )
     return out
 

@@ -53,7 +53,9 @@ def _packed(bases, shn):
     """The bases side by side in one tensor, as GaussianAvatar.pack_bases_ lays them out (views of it)."""
     G, K = shn.shape[:2]
     flat = torch.cat([*bases, shn.reshape(G, K, -1)], 2)
-    return [flat[:, :, 0:3], flat[:, :, 3:6], flat[:, :, 6:10], flat[:, :, 10:13]], flat[:, :, 13:].unflatten(2, shn.shape[2:])
+    return [flat[:, :, 0:3], flat[:, :, 3:6], flat[:, :, 6:10], flat[:, :, 10:13]], flat[:, :, 13:].unflatten(
+        2, shn.shape[2:]
+    )
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -136,7 +138,9 @@ def test_fused_lbs_posing_declines_singular_blends_and_gradients():
         assert kernels.pose_lbs_fast(T, S, X, q, 1e-12, gm.POLAR_MIN_DET) is None
         # gm.pose_lbs falls back and still returns the reference numbers
         means, quats = gm.pose_lbs(X, q / q.norm(dim=-1, keepdim=True), T, idx, w, S)
-        m_ref, q_ref = gm.pose_gaussians(X, q / q.norm(dim=-1, keepdim=True), gm.blend_affine(T, idx, w), compiled=False)
+        m_ref, q_ref = gm.pose_gaussians(
+            X, q / q.norm(dim=-1, keepdim=True), gm.blend_affine(T, idx, w), compiled=False
+        )
     torch.testing.assert_close(means, m_ref)
     torch.testing.assert_close(quats, q_ref)
     T2, _, _, S2, X2, q2 = _posing_case(torch.float64, seed=1)

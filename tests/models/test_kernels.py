@@ -22,8 +22,9 @@ def test_values_and_grads_match_einsum(dtype, B, N, K, D):
     want = torch.einsum("bnk,nkd->bnd", c, m)
     tol = {"rtol": 1e-5, "atol": 1e-5} if dtype == torch.float32 else {"rtol": 1e-12, "atol": 1e-12}
     torch.testing.assert_close(got, want, **tol)
-    torch.testing.assert_close(torch.autograd.grad((got * w).sum(), (c, m)),
-                               torch.autograd.grad((want * w).sum(), (c, m)), **tol)
+    torch.testing.assert_close(
+        torch.autograd.grad((got * w).sum(), (c, m)), torch.autograd.grad((want * w).sum(), (c, m)), **tol
+    )
 
 
 def test_strided_view_and_partial_grads():
@@ -55,7 +56,7 @@ def test_gradcheck_and_fallbacks():
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_polar_closed_form_backward_matches_autograd_of_the_iteration(dtype):
     g = torch.Generator().manual_seed(2)
-    M = (torch.eye(3, dtype=torch.float64) + 0.4 * torch.randn(300, 3, 3, generator=g, dtype=torch.float64))
+    M = torch.eye(3, dtype=torch.float64) + 0.4 * torch.randn(300, 3, 3, generator=g, dtype=torch.float64)
     M = M[torch.det(M) > 0.05].to(dtype)  # the compiled path handles det > 0; the caller routes the rest
     G = torch.randn(M.shape, generator=g, dtype=dtype)
     a, b = M.clone().requires_grad_(), M.clone().requires_grad_()
@@ -72,6 +73,7 @@ def test_polar_closed_form_backward_matches_autograd_of_the_iteration(dtype):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_posed_quaternion_matches_the_torch_composition(dtype):
     from gsavatar.geometry.rotations import axis_angle_to_matrix
+
     g = torch.Generator().manual_seed(4)
     n = 400
     R3 = axis_angle_to_matrix(torch.randn(3, n, 3, generator=g, dtype=torch.float64) * 1.5)
@@ -96,9 +98,13 @@ def test_posed_quaternion_matches_the_torch_composition(dtype):
 
 def test_posed_quaternion_zero_and_singular_inputs():
     I = torch.eye(3, dtype=torch.float64)
-    affine = torch.cat([torch.stack([I, 2 * I, 0.5 * (I + torch.diag(torch.tensor([1.0, -1.0, -1.0],
-                                                                                  dtype=torch.float64)))]),
-                        torch.zeros(3, 3, 1, dtype=torch.float64)], -1).requires_grad_()
+    affine = torch.cat(
+        [
+            torch.stack([I, 2 * I, 0.5 * (I + torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64)))]),
+            torch.zeros(3, 3, 1, dtype=torch.float64),
+        ],
+        -1,
+    ).requires_grad_()
     q = torch.tensor([[0.0, 0, 0, 0], [0.5, 0.5, 0.5, 0.5], [1.0, 0, 0, 0]], dtype=torch.float64).requires_grad_()
     c = torch.zeros(3, 3, dtype=torch.float64)
     a_means, a_quats = gm.pose_gaussians(c, q, affine, compiled=True)  # a singular blend: the SVD path for all
@@ -132,4 +138,6 @@ def test_sparse_interpolation_matches_torch_sparse_mm(dtype):
     torch.testing.assert_close(outs[0][0], gm.interpolate(vals, idx, w), **tol)
     # a strided view (a slice of the coefficients) gives the same
     wide = torch.randn(B, M + 3, 2 * D, generator=g, dtype=dtype)
-    torch.testing.assert_close(gm.sparse_interpolate(wide[..., :D], mat), gm.sparse_interpolate(wide[..., :D], mat, compiled=False), **tol)
+    torch.testing.assert_close(
+        gm.sparse_interpolate(wide[..., :D], mat), gm.sparse_interpolate(wide[..., :D], mat, compiled=False), **tol
+    )

@@ -85,6 +85,8 @@ def test_he_init_keeps_unit_scale_where_linear_init_shrinks_it():
     assert stds["linear"] < 0.1
     he = AnchorMLPs(6, 40, 32, (128,), init="he")
     assert float(he.biases[0].detach().abs().max()) == 0.0
-    assert abs(float(he.weights[0].detach().std()) - (2.0 / 40) ** 0.5) < 0.02  # U(-sqrt(6/in), sqrt(6/in)): std sqrt(2/in)
+    assert (
+        abs(float(he.weights[0].detach().std()) - (2.0 / 40) ** 0.5) < 0.02
+    )  # U(-sqrt(6/in), sqrt(6/in)): std sqrt(2/in)
     with pytest.raises(ValueError, match="init"):
         AnchorMLPs(6, 40, 32, (8,), init="xavier")

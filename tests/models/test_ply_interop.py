@@ -104,9 +104,20 @@ def test_up_axis_renders_the_same_from_matching_cameras(tmp_path, axis):
     for gs, vm in ((ours, _look_at(np.array([1.2, -1.6, 0.5]), np.zeros(3), np.array([0.0, 0, 1]))), (rot, None)):
         if vm is None:  # the same camera in the rotated world: cam_from_world' = cam_from_world @ R^-1
             vm = images[0][1] @ np.linalg.inv(np.block([[R, np.zeros((3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]]))
-        out = rasterize(torch.from_numpy(gs.means), torch.from_numpy(gs.quats), torch.from_numpy(gs.scales),
-                        torch.from_numpy(gs.opacities), torch.from_numpy(gs.sh), torch.from_numpy(vm).float()[None], K,
-                        W, H, torch.zeros(1, 3), sh_degree=3, backend="torch")
+        out = rasterize(
+            torch.from_numpy(gs.means),
+            torch.from_numpy(gs.quats),
+            torch.from_numpy(gs.scales),
+            torch.from_numpy(gs.opacities),
+            torch.from_numpy(gs.sh),
+            torch.from_numpy(vm).float()[None],
+            K,
+            W,
+            H,
+            torch.zeros(1, 3),
+            sh_degree=3,
+            backend="torch",
+        )
         images.append((out.colors[0], vm))
     a, b = images[0][0], images[1][0]
     assert a.abs().max() > 0.1  # something is drawn
@@ -135,15 +146,18 @@ def test_splat_transform_reads_our_ply(tmp_path, K):
         pytest.skip("interop: needs node and `npm install -g @playcanvas/splat-transform`")
     g = _gaussians(N=123, K=K)
     write_ply(tmp_path / "a.ply", **g, up_axis="-y")
-    r = subprocess.run([*cmd, str(tmp_path / "a.ply"), "--summary", "null"], capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [*cmd, str(tmp_path / "a.ply"), "--summary", "null"], capture_output=True, text=True, timeout=120
+    )
     text = r.stdout + r.stderr
     assert r.returncode == 0, text
     m = re.search(r"(\d+) gaussians\W+(\d+) SH bands", text)
     assert m, text
     assert (int(m.group(1)), int(m.group(2))) == (123, round(np.sqrt(K)) - 1), text
     # its CSV export: the values it decoded are ours
-    r = subprocess.run([*cmd, str(tmp_path / "a.ply"), str(tmp_path / "a.csv")], capture_output=True, text=True,
-                       timeout=120)
+    r = subprocess.run(
+        [*cmd, str(tmp_path / "a.ply"), str(tmp_path / "a.csv")], capture_output=True, text=True, timeout=120
+    )
     assert r.returncode == 0, r.stdout + r.stderr
     lines = (tmp_path / "a.csv").read_text().splitlines()
     head = lines[0].split(",")

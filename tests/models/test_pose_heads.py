@@ -30,8 +30,9 @@ def parts():
 
 
 # --------------------------------------------------------------------------- the oracle
-def pre_refactor_forward(av: GaussianAvatar, pose, root_rotation, root_translation, face=None, latents=None,
-                         sh_degree=None, correctives=True) -> AvatarOutput:
+def pre_refactor_forward(
+    av: GaussianAvatar, pose, root_rotation, root_translation, face=None, latents=None, sh_degree=None, correctives=True
+) -> AvatarOutput:
     """``GaussianAvatar.forward`` as it was before the pose heads (commit 0fdce94): the variant checked in the
     forward, a ``pre()`` closure with the ``shn`` special case; same parameters, same stateless math."""
     cfg = av.config
@@ -135,8 +136,9 @@ def test_every_variant_matches_the_pre_refactor_forward(parts, name, center):
             assert got_grad.keys() == want_grad.keys(), call
             for n in got_grad:
                 scale = want_grad[n].abs().max().clamp_min(1e-12)
-                torch.testing.assert_close(got_grad[n] / scale, want_grad[n] / scale, rtol=0, atol=1e-4,
-                                           msg=f"{call} {n}")
+                torch.testing.assert_close(
+                    got_grad[n] / scale, want_grad[n] / scale, rtol=0, atol=1e-4, msg=f"{call} {n}"
+                )
 
 
 @pytest.mark.parametrize("name", VARIANT_NAMES)

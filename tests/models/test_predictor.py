@@ -20,8 +20,9 @@ from gsavatar.models.predictor import (
 )
 
 A, L, P, N = 5, 6, 8, 4
-SMALL = PredictorConfig(history=N, width=32, heads=2, ff=64, latent_dim=L, token_hidden=16, latent_pca_components=4,
-                        initial_hidden=16)
+SMALL = PredictorConfig(
+    history=N, width=32, heads=2, ff=64, latent_dim=L, token_hidden=16, latent_pca_components=4, initial_hidden=16
+)
 
 
 def model(untrained: bool = False, **kw) -> AppearancePredictor:
@@ -51,8 +52,12 @@ def windows(x: torch.Tensor, t: int) -> torch.Tensor:
 def test_shapes_and_argument_errors():
     m = model()
     pose, rot, trans = seq(7)
-    out = m(windows(pose, 6).expand(3, -1, -1), windows(rot, 6).expand(3, -1, -1), windows(trans, 6).expand(3, -1, -1),
-            torch.randn(3, A, L))
+    out = m(
+        windows(pose, 6).expand(3, -1, -1),
+        windows(rot, 6).expand(3, -1, -1),
+        windows(trans, 6).expand(3, -1, -1),
+        torch.randn(3, A, L),
+    )
     assert out.shape == (3, A, L)
     assert m.rollout(pose, rot, trans).shape == (7, A, L)
     lat, st = m.step(m.init_state(pose[0], rot[0], trans[0]), pose[1], rot[1], trans[1])
@@ -137,8 +142,9 @@ def test_rigid_transform_of_root_motion_leaves_prediction_unchanged():
     Q, c = random_rotation(g), torch.randn(3, generator=g, dtype=torch.float64) * 2
     rot2 = matrix_to_axis_angle(Q @ axis_angle_to_matrix(rot.double())).float()
     trans2 = (trans.double() @ Q.T + c).float()
-    torch.testing.assert_close(relative_root_motion(rot2[None], trans2[None]), relative_root_motion(rot[None], trans[None]),
-                               atol=2e-6, rtol=0)
+    torch.testing.assert_close(
+        relative_root_motion(rot2[None], trans2[None]), relative_root_motion(rot[None], trans[None]), atol=2e-6, rtol=0
+    )
     prev = torch.randn(1, A, L)
     a = m(pose[None], rot[None], trans[None], prev)
     b = m(pose[None], rot2[None], trans2[None], prev)
@@ -155,7 +161,9 @@ def test_latent_pca_clamp_box():
     full = fit_latent_pca(lat, L)
     lim = 2.0 * full.sigma
     # full rank: points inside the box are unchanged, outside ones land on the box
-    inside = full.mean + torch.einsum("nak,alk->nal", (torch.rand(10, A, L, generator=g) * 2 - 1) * 0.99 * lim, full.basis)
+    inside = full.mean + torch.einsum(
+        "nak,alk->nal", (torch.rand(10, A, L, generator=g) * 2 - 1) * 0.99 * lim, full.basis
+    )
     torch.testing.assert_close(latent_pca_project(inside, full.mean, full.basis, lim), inside, atol=1e-5, rtol=0)
     far = torch.randn(10, A, L, generator=g) * 20
     c = torch.einsum("nal,alk->nak", latent_pca_project(far, full.mean, full.basis, lim) - full.mean, full.basis)
@@ -167,7 +175,12 @@ def test_latent_pca_clamp_box():
     with torch.no_grad():
         m.head.weight.mul_(100)
     pose, rot, trans = seq(N)
-    out = m(pose[None].expand(4, -1, -1), rot[None].expand(4, -1, -1), trans[None].expand(4, -1, -1), torch.randn(4, A, L) * 5)
+    out = m(
+        pose[None].expand(4, -1, -1),
+        rot[None].expand(4, -1, -1),
+        trans[None].expand(4, -1, -1),
+        torch.randn(4, A, L) * 5,
+    )
     c = torch.einsum("nal,alk->nak", out - pca.mean, pca.basis)
     assert (c.abs() <= mlim + 1e-4).all() and (c.abs() >= mlim - 1e-4).any()
     resid = (out - pca.mean) - torch.einsum("nak,alk->nal", c, pca.basis)
@@ -180,8 +193,9 @@ def test_fit_latent_pca_handles_rank_deficiency():
     lat = torch.randn(3, A, L)  # 3 frames: at most 2 components
     pca = fit_latent_pca(lat, 4)
     assert pca.basis.shape == (A, L, 4) and (pca.sigma[:, 2:] == 0).all() and (pca.basis[:, :, 2:] == 0).all()
-    torch.testing.assert_close(pca.basis[:, :, :2].transpose(1, 2) @ pca.basis[:, :, :2], torch.eye(2).expand(A, 2, 2),
-                               atol=1e-5, rtol=0)
+    torch.testing.assert_close(
+        pca.basis[:, :, :2].transpose(1, 2) @ pca.basis[:, :, :2], torch.eye(2).expand(A, 2, 2), atol=1e-5, rtol=0
+    )
 
 
 def test_initial_latents_zero_until_trained_then_net():
@@ -275,8 +289,9 @@ def test_kinematic_chain_is_the_rigs_forward_kinematics():
     chain = KinematicChain(*KinematicChain.from_rig(rig).arrays())  # through its arrays, as from a checkpoint
     pose, rot, trans = joint_seq(6, rig.pose_dim)
     d = lambda x: x.double()  # noqa: E731
-    torch.testing.assert_close(pose_joints(chain, d(pose), d(rot), d(trans)), pose_joints(rig, d(pose), d(rot), d(trans)),
-                               atol=1e-12, rtol=0)
+    torch.testing.assert_close(
+        pose_joints(chain, d(pose), d(rot), d(trans)), pose_joints(rig, d(pose), d(rot), d(trans)), atol=1e-12, rtol=0
+    )
     with pytest.raises(ValueError, match="parents must come before"):
         KinematicChain(rig.heads(), [1, 0, 0, 0, 0, 0], *KinematicChain.from_rig(rig).arrays()[2:])
 
@@ -324,11 +339,16 @@ def test_joint_token_predictor_rebuilds_from_its_state_dict():
 
     m = joint_model()
     sd = m.state_dict()
-    m2 = AppearancePredictor(m.config, A, sd["pose_slots"], m.pose_dim, seed=1,
-                             kinematics=tuple(sd[k] for k in KINEMATICS_KEYS))
+    m2 = AppearancePredictor(
+        m.config, A, sd["pose_slots"], m.pose_dim, seed=1, kinematics=tuple(sd[k] for k in KINEMATICS_KEYS)
+    )
     m2.load_state_dict(sd)
     pose, rot, trans = joint_seq(9, m.pose_dim, seed=2)
-    torch.testing.assert_close(m2.eval().rollout(pose, rot, trans, torch.zeros(A, L)),
-                               m.rollout(pose, rot, trans, torch.zeros(A, L)), atol=0, rtol=0)
+    torch.testing.assert_close(
+        m2.eval().rollout(pose, rot, trans, torch.zeros(A, L)),
+        m.rollout(pose, rot, trans, torch.zeros(A, L)),
+        atol=0,
+        rtol=0,
+    )
     with pytest.raises(ValueError, match="kinematics"):
         AppearancePredictor(m.config, A, [0], m.pose_dim)

@@ -33,6 +33,7 @@ def make(prep, cfg: ModelConfig, randomize: bool = False) -> GaussianAvatar:
         randomize_bases(av)
     return av
 
+
 # tolerance per dtype for the Newton polar factor vs the SVD (round-off of ~6 iterations)
 POLAR_TOL = {torch.float64: (1e-12, 1e-9), torch.float32: (5e-6, 5e-3)}  # (values, gradients)
 
@@ -68,13 +69,15 @@ def test_polar_rotation_matches_svd_values_and_gradients(dtype, spread, compiled
 def test_polar_rotation_hard_cases(compiled):
     I = torch.eye(3, dtype=torch.float64)
     R = axis_angle_to_matrix(torch.tensor([[0.0, 0.0, np.pi * 0.999]], dtype=torch.float64))[0]
-    cases = torch.stack([
-        I,                                  # exact rotation: SVD's backward is NaN here, ours is finite
-        0.5 * (I + R),                      # near-opposite blend: nearly singular -> SVD fallback
-        torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)),  # reflection -> SVD path, det +1
-        torch.zeros(3, 3, dtype=torch.float64),  # degenerate
-        1e-20 * I,                          # tiny scale: scaling keeps Newton exact
-    ]).requires_grad_()
+    cases = torch.stack(
+        [
+            I,  # exact rotation: SVD's backward is NaN here, ours is finite
+            0.5 * (I + R),  # near-opposite blend: nearly singular -> SVD fallback
+            torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)),  # reflection -> SVD path, det +1
+            torch.zeros(3, 3, dtype=torch.float64),  # degenerate
+            1e-20 * I,  # tiny scale: scaling keeps Newton exact
+        ]
+    ).requires_grad_()
     Q = gm.polar_rotation(cases, compiled=compiled)
     assert torch.isfinite(Q).all()
     torch.testing.assert_close(torch.det(Q.detach()), torch.ones(5, dtype=torch.float64), rtol=0, atol=1e-9)

@@ -8,8 +8,16 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 
-def write_bvh(path: Path, names: list[str], parents: list[int], rest: np.ndarray, angles_deg: np.ndarray,
-              root_pos: np.ndarray, fps: float = 30.0, order: str = "ZXY") -> Path:
+def write_bvh(
+    path: Path,
+    names: list[str],
+    parents: list[int],
+    rest: np.ndarray,
+    angles_deg: np.ndarray,
+    root_pos: np.ndarray,
+    fps: float = 30.0,
+    order: str = "ZXY",
+) -> Path:
     """A BVH of ``names`` (parents first) with rest joint positions ``rest`` [J, 3] (file units), rotation
     channels ``order`` (intrinsic, e.g. ``ZXY`` = Zrotation Xrotation Yrotation) of angles ``angles_deg``
     [F, J, 3] (in ``order``), the root's position channels ``root_pos`` [F, 3]."""
@@ -56,5 +64,8 @@ def random_angles(F: int, J: int, seed: int = 0, std_deg: float = 25.0) -> np.nd
 
 def euler_matrix(order: str, angles_deg: np.ndarray) -> np.ndarray:
     """Intrinsic rotation of BVH channels ``order``. [..., 3] -> [..., 3, 3]"""
-    return Rotation.from_euler(order.upper(), angles_deg.reshape(-1, 3), degrees=True).as_matrix().reshape(
-        *angles_deg.shape[:-1], 3, 3)
+    return (
+        Rotation.from_euler(order.upper(), angles_deg.reshape(-1, 3), degrees=True)
+        .as_matrix()
+        .reshape(*angles_deg.shape[:-1], 3, 3)
+    )

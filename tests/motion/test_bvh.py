@@ -51,7 +51,15 @@ def test_parse_cmu_01_01(cmu):
     assert cmu.parents[cmu.joint_index("LThumb")] == cmu.joint_index("LeftHand")
     np.testing.assert_allclose(cmu.offsets[cmu.joint_index("LeftUpLeg")], [1.36306, -1.79463, 0.83929])
     assert len(cmu.end_sites) == 7  # toes x2, head, fingers x2, thumbs x2
-    assert {cmu.names[j] for j, _ in cmu.end_sites} == {"LeftToeBase", "RightToeBase", "Head", "LFingers", "LThumb", "RFingers", "RThumb"}
+    assert {cmu.names[j] for j, _ in cmu.end_sites} == {
+        "LeftToeBase",
+        "RightToeBase",
+        "Head",
+        "LFingers",
+        "LThumb",
+        "RFingers",
+        "RThumb",
+    }
     np.testing.assert_allclose(cmu.motion[0, :4], [9.3722, 17.8693, -17.3198, 0.0])
     assert np.all(np.isfinite(cmu.motion))
     np.testing.assert_array_equal(cmu.channel_start()[:3], [0, 6, 9])
@@ -72,7 +80,9 @@ def test_fk_consistency(cmu):
     P = G[..., :3, 3]
     for j, p in enumerate(cmu.parents.tolist()):
         if p >= 0:
-            np.testing.assert_allclose(np.linalg.norm(P[:, j] - P[:, p], axis=1), np.linalg.norm(cmu.offsets[j]), atol=1e-9)
+            np.testing.assert_allclose(
+                np.linalg.norm(P[:, j] - P[:, p], axis=1), np.linalg.norm(cmu.offsets[j]), atol=1e-9
+            )
     # root: translation channels + intrinsic Z-Y-X euler (degrees)
     m = cmu.motion[frames]
     np.testing.assert_allclose(P[:, 0], m[:, :3] + cmu.offsets[0], atol=1e-12)
@@ -126,7 +136,11 @@ def _write(tmp_path: Path, text: str, name: str = "x.bvh") -> Path:
 def test_arbitrary_channel_orders_and_positions(tmp_path):
     b = read_bvh(_write(tmp_path, SMALL))
     assert b.names == ["root", "mid", "still"]
-    assert b.channels == [["Yrotation", "Xposition", "Zposition", "Xrotation"], ["Xrotation", "Yposition", "Zrotation", "Yrotation"], []]
+    assert b.channels == [
+        ["Yrotation", "Xposition", "Zposition", "Xrotation"],
+        ["Xrotation", "Yposition", "Zrotation", "Yrotation"],
+        [],
+    ]
     assert b.num_channels == 8 and b.fps == pytest.approx(25.0)
     assert len(b.end_sites) == 1 and b.end_sites[0][0] == 1
     G = bvh_global_transforms(b)
@@ -161,9 +175,19 @@ def _broken(text: str, old: str, new: str) -> str:
         (lambda s: _broken(s, "Frames: 2", "Frames: two"), 22, "integer"),
         (lambda s: _broken(s, "Frame Time: 0.04", "Frame Time: 0"), 23, "> 0"),
         (lambda s: _broken(s, "Frame Time: 0.04\n", ""), 23, "Frame Time"),
-        (lambda s: _broken(s, "Yrotation Xposition Zposition Xrotation", "Yrotation Xposition Zposition Wrotation"), 5, "unknown channel"),
+        (
+            lambda s: _broken(s, "Yrotation Xposition Zposition Xrotation", "Yrotation Xposition Zposition Wrotation"),
+            5,
+            "unknown channel",
+        ),
         # declared 4 channels but only 3 names: the parser reads 'JOINT' as the 4th
-        (lambda s: _broken(s, "CHANNELS 4 Yrotation Xposition Zposition Xrotation", "CHANNELS 4 Yrotation Xposition Zposition"), 6, "unknown channel 'JOINT'"),
+        (
+            lambda s: _broken(
+                s, "CHANNELS 4 Yrotation Xposition Zposition Xrotation", "CHANNELS 4 Yrotation Xposition Zposition"
+            ),
+            6,
+            "unknown channel 'JOINT'",
+        ),
         (lambda s: _broken(s, "CHANNELS 4 Yrotation", "CHANNELS 9 Yrotation"), 5, "0..6"),
         (lambda s: _broken(s, "OFFSET 0 1 0", "OFFSET 0 one 0"), 8, "expected a number"),
         (lambda s: _broken(s, "OFFSET 0 1 0", "OFFSET 0 NaN 0"), 8, "not finite"),

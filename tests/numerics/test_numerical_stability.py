@@ -60,6 +60,7 @@ def camera(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
 
 def gaussians(dtype: torch.dtype, *specs: dict) -> dict[str, torch.Tensor]:
     """Leaf tensors (requires_grad) for Gaussians given as dicts of mean/scale/quat/opacity/color."""
+
     def col(key, default):
         return torch.tensor([s.get(key, default) for s in specs], dtype=dtype)
 
@@ -77,8 +78,20 @@ def gaussians(dtype: torch.dtype, *specs: dict) -> dict[str, torch.Tensor]:
 def render_and_grads(scene: dict, dtype: torch.dtype, **kwargs):
     """Render, then backprop a loss touching every pixel; asserts everything is finite."""
     viewmats, Ks = camera(dtype)
-    out = rasterize(scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["colors"],
-                    viewmats, Ks, W, H, backgrounds=scene["backgrounds"], backend="torch", **kwargs)
+    out = rasterize(
+        scene["means"],
+        scene["quats"],
+        scene["scales"],
+        scene["opacities"],
+        scene["colors"],
+        viewmats,
+        Ks,
+        W,
+        H,
+        backgrounds=scene["backgrounds"],
+        backend="torch",
+        **kwargs,
+    )
     assert_finite("render", out.colors, out.alphas)
     assert (out.alphas >= 0).all() and (out.alphas <= 1).all()
     g = torch.Generator().manual_seed(0)
@@ -285,8 +298,9 @@ def test_scale_activation_extremes(log_scale, dtype):
 @pytest.fixture(scope="module")
 def arm_avatar_parts():
     # a constant group (torso): zero local PCA components there
-    return arm_avatar_inputs(n_anchors=12, n_control=60, n_gaussians=300, min_candidates=1000, n_poses=40,
-                             constant_torso=True)
+    return arm_avatar_inputs(
+        n_anchors=12, n_control=60, n_gaussians=300, min_candidates=1000, n_poses=40, constant_torso=True
+    )
 
 
 AVATAR_CASES = {
@@ -323,13 +337,29 @@ def test_avatar_render_loss_backward_is_finite(arm_avatar_parts, case):
     K = torch.tensor([[24.0, 0.0, 16.0], [0.0, 24.0, 6.0], [0.0, 0.0, 1.0]])
     images, alphas = [], []
     for b in range(B):
-        r = rasterize(out.means[b], out.quats[b], out.scales[b], out.opacities[b], out.sh[b], vm[None], K[None],
-                      32, 12, backgrounds=torch.ones(1, 3), sh_degree=av.config.sh_degree, backend="torch")
+        r = rasterize(
+            out.means[b],
+            out.quats[b],
+            out.scales[b],
+            out.opacities[b],
+            out.sh[b],
+            vm[None],
+            K[None],
+            32,
+            12,
+            backgrounds=torch.ones(1, 3),
+            sh_degree=av.config.sh_degree,
+            backend="torch",
+        )
         images.append(r.colors[0].permute(2, 0, 1))
         alphas.append(r.alphas[0].permute(2, 0, 1))
     pred, alpha = torch.stack(images), torch.stack(alphas)
-    loss = (l1_loss(pred, torch.full_like(pred, 0.3)) + opacity_loss(alpha, torch.ones_like(alpha))
-            + scale_loss(out.scales, 0.025) + cpt_smoothness_loss(out.ctrl_disp, av.ctrl_neighbors))
+    loss = (
+        l1_loss(pred, torch.full_like(pred, 0.3))
+        + opacity_loss(alpha, torch.ones_like(alpha))
+        + scale_loss(out.scales, 0.025)
+        + cpt_smoothness_loss(out.ctrl_disp, av.ctrl_neighbors)
+    )
     loss.backward()
     assert torch.isfinite(loss)
     for name, p in av.named_parameters():
@@ -483,8 +513,7 @@ def _train_poses(rig, F, seed=0):
     return rng.normal(size=(F, rig.pose_dim)) @ (rng.normal(size=(rig.pose_dim, rig.pose_dim)) * 0.1)
 
 
-RANK_CASES = ["duplicated_columns", "near_constant_joint", "two_frames", "single_frame", "all_constant",
-              "huge_offsets"]
+RANK_CASES = ["duplicated_columns", "near_constant_joint", "two_frames", "single_frame", "all_constant", "huge_offsets"]
 
 
 @pytest.mark.parametrize("mode", ["local", "global"])
@@ -591,16 +620,21 @@ def test_latent_pca_clamp_with_zero_variance_components(case):
 @pytest.mark.parametrize("case", ["all_constant", "constant_anchor"])
 def test_predictor_fit_on_constant_latents_stays_finite(case):
     lat = _latents(case)
-    cfg = PredictorConfig(history=4, width=16, heads=2, ff=32, latent_dim=L_, token_hidden=8,
-                          latent_pca_components=4, initial_hidden=8)
+    cfg = PredictorConfig(
+        history=4, width=16, heads=2, ff=32, latent_dim=L_, token_hidden=8, latent_pca_components=4, initial_hidden=8
+    )
     m = AppearancePredictor(cfg, A_, [0, 2, 3], 5, seed=0)
     m.fit_latent_statistics(lat)  # std 0 -> scale floored (1e-8 when everything is constant)
     assert_finite("latent_scale", m.latent_scale)
     assert (m.latent_scale > 0).all()
     g = torch.Generator().manual_seed(2)
     prev = lat[:2] + 10.0 * torch.randn(2, A_, L_, generator=g)  # far from the (constant) training latents
-    out = m(torch.randn(2, 4, 5, generator=g), torch.randn(2, 4, 3, generator=g) * 0.1,
-            torch.randn(2, 4, 3, generator=g) * 0.1, prev)
+    out = m(
+        torch.randn(2, 4, 5, generator=g),
+        torch.randn(2, 4, 3, generator=g) * 0.1,
+        torch.randn(2, 4, 3, generator=g) * 0.1,
+        prev,
+    )
     out.square().sum().backward()
     assert_finite("predictor", out)
     for name, p in m.named_parameters():

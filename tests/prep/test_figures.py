@@ -67,7 +67,9 @@ def test_hierarchy_figure_colours(tmp_path, scene):
 @needs_egl
 def test_influence_figure_colours(tmp_path, scene):
     t, rig, h, lm = scene
-    p = figures.render_influence_figure(t, h, lm, rig, tmp_path / "i.png", param="LeftFinger.rx", window_size=(480, 240))
+    p = figures.render_influence_figure(
+        t, h, lm, rig, tmp_path / "i.png", param="LeftFinger.rx", window_size=(480, 240)
+    )
     img = _read_png(p)
     red, light = _count(img, figures.RED), _count(img, figures.INACTIVE)
     assert red > 30 and light > 30

@@ -51,7 +51,9 @@ def test_forearm_param_is_local(setup):
         assert col.sum() > 3 and x.min() >= 0.33 and x.max() <= 0.92
         assert not np.any(col[(a.position[:, 0] < 0.3) | (a.position[:, 0] > 0.95)])
     # ancestor_levels=0: only anchors skinned to the forearm itself
-    m0 = pose_masks(a.skin_indices, a.skin_weights, rig, a.position, dilate=False, hand_uses_wrist=False, ancestor_levels=0)
+    m0 = pose_masks(
+        a.skin_indices, a.skin_weights, rig, a.position, dilate=False, hand_uses_wrist=False, ancestor_levels=0
+    )
     np.testing.assert_array_equal(m0[:, _col(rig, "LeftForeArm.r")], _skinned(a, rig, ["LeftForeArm"]))
     # root-near params stay local too
     sp = m[:, _col(rig, "Spine.rx")]

@@ -22,7 +22,9 @@ def _poses(rig, F=200, seed=0, scale=0.3):
 def _naive_project(poses_train, rig, x, n=5, clamp=2.0, mode="local"):
     """Reference: explicit per-group loops with numpy SVD."""
     sg = rig.slot_groups()
-    groups = [np.flatnonzero(sg == g) for g in range(len(BODY_GROUPS))] if mode == "local" else [np.arange(rig.pose_dim)]
+    groups = (
+        [np.flatnonzero(sg == g) for g in range(len(BODY_GROUPS))] if mode == "local" else [np.arange(rig.pose_dim)]
+    )
     out = np.zeros_like(x)
     F = len(poses_train)
     for slots in groups:
@@ -53,7 +55,9 @@ def test_matches_naive_reference(mode):
     ref = _naive_project(tr, rig, x, n=n, mode=mode)
     np.testing.assert_allclose(got, ref, atol=1e-10)
     if mode == "local":
-        assert pca.components_per_group() == {g: min(5, int(np.sum(rig.slot_groups() == i))) for i, g in enumerate(BODY_GROUPS)}
+        assert pca.components_per_group() == {
+            g: min(5, int(np.sum(rig.slot_groups() == i))) for i, g in enumerate(BODY_GROUPS)
+        }
     else:
         assert pca.num_components == 12
 
@@ -148,7 +152,9 @@ def test_fewer_frames_than_dims():
     rig = body_rig()
     tr = _poses(rig, F=3)  # F-1 = 2 components at most
     pca = fit_pose_pca(tr, rig, n_components=5)
-    assert all(v == min(2, int(np.sum(rig.slot_groups() == i))) for i, v in enumerate(pca.components_per_group().values()))
+    assert all(
+        v == min(2, int(np.sum(rig.slot_groups() == i))) for i, v in enumerate(pca.components_per_group().values())
+    )
     np.testing.assert_allclose(pca.project(tr), _naive_project(tr, rig, tr), atol=1e-10)
     one = fit_pose_pca(tr[:1], rig)
     assert one.num_components == 0
@@ -177,7 +183,7 @@ def test_torch_same_numbers_and_differentiable():
     assert t32.grad is not None and torch.all(torch.isfinite(t32.grad))
     # gradient = B_active B_active^T 1 (only unclamped components pass gradient)
     z = pca.transform(x.astype(np.float32))
-    active = (np.abs(z) < 2 * pca.sigma)
+    active = np.abs(z) < 2 * pca.sigma
     for b in range(2):
         Ba = pca.basis[:, active[b]]
         np.testing.assert_allclose(t32.grad[b].numpy(), Ba @ (Ba.T @ np.ones(rig.pose_dim)), atol=1e-4)

@@ -64,8 +64,12 @@ def test_verify_detects_corrupt_shard_and_escaping_path(cap, tmp_path, capsys):
     obj["shards"][1]["file"] = "../../etc/passwd"
     m.write_text(json.dumps(obj))
     assert any("escapes the dataset root" in s for s in verify_dataset(ds))
-    r = subprocess.run([sys.executable, "-m", "gsavatar.prep.cli", "verify", str(ds)], capture_output=True, text=True,
-                       env={**os.environ, "PYTHONPATH": str(REPO / "src")})
+    r = subprocess.run(
+        [sys.executable, "-m", "gsavatar.prep.cli", "verify", str(ds)],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(REPO / "src")},
+    )
     assert r.returncode == 1 and "escapes the dataset root" in r.stderr
 
 
@@ -73,7 +77,21 @@ def test_two_slurm_style_ranks_equal_one(cap, tmp_path):
     one, two = tmp_path / "one", tmp_path / "two"
     main(["pose-template", "--capture", str(cap), "--out", str(one), "--shard-size", "2", "--workers", "1"])
     for i in (0, 1):
-        main(["pose-template", "--capture", str(cap), "--out", str(two), "--shard-size", "2", "--workers", "1", "--shard", f"{i}/2"])
+        main(
+            [
+                "pose-template",
+                "--capture",
+                str(cap),
+                "--out",
+                str(two),
+                "--shard-size",
+                "2",
+                "--workers",
+                "1",
+                "--shard",
+                f"{i}/2",
+            ]
+        )
     # the last rank finds every shard complete and merges the manifest
     a, b = _shards(one), _shards(two)
     assert sorted(a) == sorted(b) and all(np.array_equal(a[f], b[f]) for f in a)
@@ -84,9 +102,31 @@ def test_torchrun_two_gloo_ranks_equal_one(cap, tmp_path):
     one, two = tmp_path / "one", tmp_path / "two"
     main(["pose-template", "--capture", str(cap), "--out", str(one), "--shard-size", "2", "--workers", "1"])
     env = {**os.environ, "PYTHONPATH": str(REPO / "src"), "OMP_NUM_THREADS": "1"}
-    r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-                        "-m", "gsavatar.prep.cli", "pose-template", "--capture", str(cap), "--out", str(two),
-                        "--shard-size", "2", "--workers", "1"], capture_output=True, text=True, env=env, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "torch.distributed.run",
+            "--standalone",
+            "--nproc-per-node",
+            "2",
+            "-m",
+            "gsavatar.prep.cli",
+            "pose-template",
+            "--capture",
+            str(cap),
+            "--out",
+            str(two),
+            "--shard-size",
+            "2",
+            "--workers",
+            "1",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     a, b = _shards(one), _shards(two)
     assert sorted(a) == sorted(b) and all(np.array_equal(a[f], b[f]) for f in a)

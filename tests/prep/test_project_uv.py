@@ -142,12 +142,16 @@ def test_plane_recovers_texture(plane):
 def test_distorted_camera_recovers_texture():
     V, F, C = quad((0, 0, 0), 1.0, (0, 0), (1, 1))
     tm = build_texel_map(V, C, 64)
-    cams = [make_cam("d0", (0.2, 0.1, 1.3), f=200, dist=[-0.25, 0.08, 0.002, -0.001, 0.0]),
-            make_cam("d1", (-0.5, 0.1, 1.3), f=200, dist=[0.15, -0.05, 0.0, 0.003, 0.01])]
+    cams = [
+        make_cam("d0", (0.2, 0.1, 1.3), f=200, dist=[-0.25, 0.08, 0.002, -0.001, 0.0]),
+        make_cam("d1", (-0.5, 0.1, 1.3), f=200, dist=[0.15, -0.05, 0.0, 0.003, 0.01]),
+    ]
     views = [(c, *render(V, F, C, c)) for c in cams]
     # sanity: the distortion is not negligible in these views
     c0 = replace(cams[0], dist=np.zeros(5))
-    shift = np.abs(project(V, cams[0].K, cams[0].R, cams[0].T, cams[0].dist).pixels - project(V, c0.K, c0.R, c0.T).pixels).max()
+    shift = np.abs(
+        project(V, cams[0].K, cams[0].R, cams[0].T, cams[0].dist).pixels - project(V, c0.K, c0.R, c0.T).pixels
+    ).max()
     assert shift > 5
     fus = project_uv(V, F, tm, views, ProjectConfig(tex_size=64))
     p, m = interior_eval(tm, fus, gt_texture(64))
@@ -306,7 +310,10 @@ def naive_fuse(rgb, ok, fusion, band):
         if fusion == "mean":
             keep = idx
         else:
-            L = {c: 0.2126 * float(rgb[i, c, 0]) + 0.7152 * float(rgb[i, c, 1]) + 0.0722 * float(rgb[i, c, 2]) for c in idx}
+            L = {
+                c: 0.2126 * float(rgb[i, c, 0]) + 0.7152 * float(rgb[i, c, 1]) + 0.0722 * float(rgb[i, c, 2])
+                for c in idx
+            }
             med = statistics.median(L.values())
             keep = [c for c in idx if band[0] * med <= L[c] <= band[1] * med]
             if not keep:
@@ -397,7 +404,9 @@ def _naive_samples(V, F, tm, views, cfg):
     for ci, (cam, img, mask) in enumerate(views):
         fg = (mask > cfg.mask_threshold).astype(np.uint8)
         if cfg.erode_px > 1:
-            fg = cv2.erode(fg, np.ones((cfg.erode_px, cfg.erode_px), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=1)
+            fg = cv2.erode(
+                fg, np.ones((cfg.erode_px, cfg.erode_px), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=1
+            )
         C = -cam.R.T @ cam.T
         for ti, t in enumerate(texels):
             y, x = divmod(int(t), tm.size)
@@ -422,8 +431,12 @@ def _naive_samples(V, F, tm, views, cfg):
             if occluded(o, C - o):
                 continue
             fx, fy = px - x0, py - y0
-            val = (img[y0, x0] * (1 - fx) * (1 - fy) + img[y0, x0 + 1] * fx * (1 - fy)
-                   + img[y0 + 1, x0] * (1 - fx) * fy + img[y0 + 1, x0 + 1] * fx * fy)
+            val = (
+                img[y0, x0] * (1 - fx) * (1 - fy)
+                + img[y0, x0 + 1] * fx * (1 - fy)
+                + img[y0 + 1, x0] * (1 - fx) * fy
+                + img[y0 + 1, x0 + 1] * fx * fy
+            )
             out_rgb[ti, ci] = val
             out_ok[ti, ci] = True
     return out_rgb, out_ok
@@ -437,8 +450,11 @@ def test_sampling_matches_naive_reference_with_occluder():
     tilted = ((tilted[0] @ R.T) + np.array([0.0, -0.9, 0.2]), tilted[1], tilted[2])
     V, F, C = merge(main, occl, tilted)
     tm = build_texel_map(V, C, 24)
-    cams = [make_cam("a", (0.3, 0.3, 2.5), size=96, f=100), make_cam("b", (-1.2, -0.2, 2.0), size=96, f=110),
-            make_cam("c", (0.5, -2.0, 1.0), size=96, f=90, dist=[-0.1, 0.02, 0.0, 0.0, 0.0])]
+    cams = [
+        make_cam("a", (0.3, 0.3, 2.5), size=96, f=100),
+        make_cam("b", (-1.2, -0.2, 2.0), size=96, f=110),
+        make_cam("c", (0.5, -2.0, 1.0), size=96, f=90, dist=[-0.1, 0.02, 0.0, 0.0, 0.0]),
+    ]
     views = [(c, *render(V, F, C, c)) for c in cams]
     # the ray path is exact (zbuffer vs rays: tests/prep/test_project_uv_zbuffer.py)
     cfg = ProjectConfig(tex_size=24, erode_px=3, visibility="rays")
@@ -546,7 +562,9 @@ def test_closed_mesh_with_xatlas_atlas(tmp_path):
     t = Template(V, F, np.zeros((len(V), 1), np.int32), np.ones((len(V), 1), np.float32))
 
     def f3(p):
-        return 0.5 + 0.3 * np.stack([np.sin(3 * p[..., 0] + 1), np.cos(2.5 * p[..., 1]), np.sin(2 * p[..., 2] - p[..., 0])], -1)
+        return 0.5 + 0.3 * np.stack(
+            [np.sin(3 * p[..., 0] + 1), np.cos(2.5 * p[..., 1]), np.sin(2 * p[..., 2] - p[..., 0])], -1
+        )
 
     cfg = ProjectConfig(tex_size=128, erode_px=3)
     t, tm = prepare_texel_map(t, cfg, tmp_path)

@@ -67,7 +67,10 @@ def test_hard_preset_median_band_beats_mean_on_corrupted_frames(tmp_path):
     from gsavatar.synth.presets import preset
 
     cap = make_capture(preset("hard", shading=False), tmp_path / "cap", anny_cache_dir(), progress=False)
-    assert main(["all", "--capture", str(cap), "--out", str(tmp_path / "ds"), "--project.tex-size", "256", "--no-figures"]) == 0
+    assert (
+        main(["all", "--capture", str(cap), "--out", str(tmp_path / "ds"), "--project.tex-size", "256", "--no-figures"])
+        == 0
+    )
     states = json.loads((cap / "gt" / "states.json").read_text())
     bad = states["corrupted"]["frames"][:4]
     rep = build_report(tmp_path / "ds", tmp_path / "rep", frames=bad, compare_mean=len(bad))

@@ -36,8 +36,11 @@ def occluder_scene(size=96):
     R = np.array([[1, 0, 0], [0, math.cos(1.2), -math.sin(1.2)], [0, math.sin(1.2), math.cos(1.2)]])
     tilted = ((tilted[0] @ R.T) + np.array([0.0, -0.9, 0.2]), tilted[1], tilted[2])
     V, F, C = merge(main, occl, tilted)
-    cams = [make_cam("a", (0.3, 0.3, 2.5), size=size, f=size * 1.05), make_cam("b", (-1.2, -0.2, 2.0), size=size, f=size * 1.15),
-            make_cam("c", (0.5, -2.0, 1.0), size=size, f=size * 0.95, dist=[-0.1, 0.02, 0.0, 0.0, 0.0])]
+    cams = [
+        make_cam("a", (0.3, 0.3, 2.5), size=size, f=size * 1.05),
+        make_cam("b", (-1.2, -0.2, 2.0), size=size, f=size * 1.15),
+        make_cam("c", (0.5, -2.0, 1.0), size=size, f=size * 0.95, dist=[-0.1, 0.02, 0.0, 0.0, 0.0]),
+    ]
     return V, F, C, cams
 
 
@@ -85,7 +88,7 @@ def _render_closed(t, cams):
         m = np.isfinite(th)
         p = rays[..., :3] + rays[..., 3:] * np.where(m, th, 0)[..., None]
         img = np.full((cam.height, cam.width, 3), 0.1, np.float32)
-        img[m] = (0.5 + 0.3 * np.stack([np.sin(6 * p[m][:, 0] + 1), np.cos(5 * p[m][:, 1]), np.sin(4 * p[m][:, 2])], -1))
+        img[m] = 0.5 + 0.3 * np.stack([np.sin(6 * p[m][:, 0] + 1), np.cos(5 * p[m][:, 1]), np.sin(4 * p[m][:, 2])], -1)
         out.append((cam, img, m.astype(np.float32)))
     return out
 
@@ -121,7 +124,9 @@ def test_rasterizer_matches_brute_force_ray_casting():
     centres = rng.uniform([-0.6, -0.6, 1.0], [0.6, 0.6, 3.0], (n, 1, 3))
     V = (centres + rng.normal(0, 0.35, (n, 3, 3))).reshape(-1, 3)
     V[2::3, 2] = np.maximum(V[2::3, 2], 0.3)
-    V = np.concatenate([V, [[0.35, 0.3, 0.9], [0.55, 0.3, 1.0], [0.45, 0.45, -0.3]]])  # crosses z = 0: a wedge to a corner
+    V = np.concatenate(
+        [V, [[0.35, 0.3, 0.9], [0.55, 0.3, 1.0], [0.45, 0.45, -0.3]]]
+    )  # crosses z = 0: a wedge to a corner
     F = np.arange(len(V)).reshape(-1, 3)
     H, W, fx, cx, fy, cy = 40, 48, 30.0, 23.3, 28.0, 19.6
     tri = np.full((H, W), -1, np.int32)
@@ -158,8 +163,20 @@ def test_back_face_culling_changes_nothing_on_a_closed_mesh(tmp_path):
     bufs = []
     for cull in (False, True):
         tri = np.full((64, 64), -1, np.int32)
-        zb.rasterize(vc, t.faces, cam.K[0, 0], 0.0, cam.K[0, 2], cam.K[1, 1], cam.K[1, 2], 1e-6, cull, tri,
-                     np.zeros((64, 64), np.float32), np.empty((len(t.faces), 4)))
+        zb.rasterize(
+            vc,
+            t.faces,
+            cam.K[0, 0],
+            0.0,
+            cam.K[0, 2],
+            cam.K[1, 1],
+            cam.K[1, 2],
+            1e-6,
+            cull,
+            tri,
+            np.zeros((64, 64), np.float32),
+            np.empty((len(t.faces), 4)),
+        )
         bufs.append(tri)
     assert (bufs[0] >= 0).sum() > 1000
     np.testing.assert_array_equal(bufs[0], bufs[1])
@@ -197,8 +214,16 @@ def test_fuse_kernel_equals_fuse_samples(fusion):
     ref = fuse_samples(rgb, ok, fusion, (0.8, 1.1))
     col, cnt, seen = np.zeros((N, 3), np.float32), np.zeros(N, np.int64), np.zeros(N, np.int64)
     zb.set_threads()
-    zb.fuse(np.ascontiguousarray(rgb.transpose(1, 0, 2)), np.ascontiguousarray(ok.T), fusion == "median_band", 0.8, 1.1,
-            col, cnt, seen)
+    zb.fuse(
+        np.ascontiguousarray(rgb.transpose(1, 0, 2)),
+        np.ascontiguousarray(ok.T),
+        fusion == "median_band",
+        0.8,
+        1.1,
+        col,
+        cnt,
+        seen,
+    )
     np.testing.assert_array_equal(cnt, ref[1])
     np.testing.assert_array_equal(seen, ref[2])
     np.testing.assert_array_equal(col, ref[0])  # same float64 accumulation order: bit-identical
@@ -313,17 +338,20 @@ def test_region_rgba_is_the_whole_image_buffer_cut_to_the_foreground(erode_px):
     rng = np.random.default_rng(erode_px)
     H, W = 60, 80
     img = rng.integers(0, 256, (H, W, 3)).astype(np.uint8)
-    cases = {"inside": (slice(20, 40), slice(30, 55)), "at the border": (slice(0, 25), slice(60, 80)),
-             "whole": (slice(0, H), slice(0, W))}
+    cases = {
+        "inside": (slice(20, 40), slice(30, 55)),
+        "at the border": (slice(0, 25), slice(60, 80)),
+        "whole": (slice(0, H), slice(0, W)),
+    }
     for name, (ys, xs) in cases.items():
         mask = np.zeros((H, W), np.float32)
-        mask[ys, xs] = (rng.uniform(size=mask[ys, xs].shape) > 0.1)
-        mask[ys.start + 2:ys.stop - 2, xs.start + 2:xs.stop - 2] = 1.0
+        mask[ys, xs] = rng.uniform(size=mask[ys, xs].shape) > 0.1
+        mask[ys.start + 2 : ys.stop - 2, xs.start + 2 : xs.stop - 2] = 1.0
         full = zb.image_with_foreground(img, zb.quad_foreground(mask, (H, W), erode_px)).reshape(H, W, 4)
         rgba, (x0, y0, w, h) = zb.region_rgba(img, mask, erode_px)
-        np.testing.assert_array_equal(rgba.reshape(h, w, 4), full[y0:y0 + h, x0:x0 + w], err_msg=name)
+        np.testing.assert_array_equal(rgba.reshape(h, w, 4), full[y0 : y0 + h, x0 : x0 + w], err_msg=name)
         outside = np.ones((H, W), bool)
-        outside[y0:y0 + h, x0:x0 + w] = False
+        outside[y0 : y0 + h, x0 : x0 + w] = False
         assert not full[..., 3][outside].any(), name
         assert full[..., 3].any() and (name == "whole" or outside.any())
     assert zb.region_rgba(img, np.zeros((H, W), np.float32), erode_px) is None
@@ -357,24 +385,55 @@ def test_block_facing_bound_never_culls_a_facing_texel(tmp_path):
             for cp in zf.cams:
                 if zb._faces_away(bnd, cp, min_cos):
                     culled += 1
-                    tv = cp[12:15, None] - P[:, s0:s0 + n]
-                    nt = (Nrm[:, s0:s0 + n] * tv).sum(0)
+                    tv = cp[12:15, None] - P[:, s0 : s0 + n]
+                    nt = (Nrm[:, s0 : s0 + n] * tv).sum(0)
                     assert not np.any(nt >= min_cos * np.linalg.norm(tv, axis=0)), (s0, min_cos)
                     assert not (s0 <= 5 < s0 + n)
     assert culled > 0.2 * 3 * len(zf.cams) * (N // block)  # a sphere seen from around: many blocks face away
     rgb, ok = np.zeros((len(zf.cams), N, 3), np.float32), np.zeros((len(zf.cams), N), bool)
     u8 = zf.imgs[0].dtype == np.uint8
     for k in range(len(zf.cams)):
-        zb.sample_view(P, Nrm, proj._z_tri, proj.faces, zf.cams[k], zf.imgs[k], u8, True, zf.tri_ids[k],
-                       zf.planes[k], cfg.occlusion_eps, cfg.min_cos, rgb[k], ok[k])
+        zb.sample_view(
+            P,
+            Nrm,
+            proj._z_tri,
+            proj.faces,
+            zf.cams[k],
+            zf.imgs[k],
+            u8,
+            True,
+            zf.tri_ids[k],
+            zf.planes[k],
+            cfg.occlusion_eps,
+            cfg.min_cos,
+            rgb[k],
+            ok[k],
+        )
     ref = [np.zeros((N, 3), np.float32), np.zeros(N, np.int64), np.zeros(N, np.int64)]
     zb.fuse(rgb, ok, True, cfg.band[0], cfg.band[1], *ref)
     out = [np.zeros((N + 3, 3), np.float32), np.zeros(N + 3, np.uint8), np.zeros(N + 3, np.uint8)]
     perm = np.random.default_rng(0).permutation(N + 3)[:N]  # results land at out_index
     for b in (block, 7):
-        zb.project_frame(P, Nrm, proj._z_tri, proj.faces, np.stack(zf.cams), List(zf.imgs), u8, True,
-                         List(zf.tri_ids), List(zf.planes), cfg.occlusion_eps, cfg.min_cos, True, cfg.band[0],
-                         cfg.band[1], b, perm, *out)
+        zb.project_frame(
+            P,
+            Nrm,
+            proj._z_tri,
+            proj.faces,
+            np.stack(zf.cams),
+            List(zf.imgs),
+            u8,
+            True,
+            List(zf.tri_ids),
+            List(zf.planes),
+            cfg.occlusion_eps,
+            cfg.min_cos,
+            True,
+            cfg.band[0],
+            cfg.band[1],
+            b,
+            perm,
+            *out,
+        )
         for r, o in zip(ref, out):
             np.testing.assert_array_equal(o[perm], r.astype(o.dtype))
     assert ok.sum() > 2000
@@ -418,7 +477,17 @@ def test_dataset_projected_before_the_zbuffer_keeps_its_method_and_id(tiny_captu
     assert obj["stages"]["project-uv"]["config"].pop("visibility") == "zbuffer"
     (ds / "dataset.json").write_text(json.dumps(obj, indent=1))
     before = dataset_fingerprint(ds)
-    args = ["project-uv", "--capture", str(tiny_capture), "--out", str(ds), "--workers", "1", "--project.tex-size", "128"]
+    args = [
+        "project-uv",
+        "--capture",
+        str(tiny_capture),
+        "--out",
+        str(ds),
+        "--workers",
+        "1",
+        "--project.tex-size",
+        "128",
+    ]
     capsys.readouterr()
     assert main(args) == 0
     out = capsys.readouterr().out

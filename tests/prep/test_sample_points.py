@@ -45,7 +45,9 @@ def test_points_on_surface(hier, tmpl):
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(tmpl.vertices.astype(np.float32)), o3d.core.Tensor(tmpl.faces.astype(np.uint32)))
+    scene.add_triangles(
+        o3d.core.Tensor(tmpl.vertices.astype(np.float32)), o3d.core.Tensor(tmpl.faces.astype(np.uint32))
+    )
     for ps in (hier.anchors, hier.control, hier.gaussians):
         d = scene.compute_distance(o3d.core.Tensor(ps.position.astype(np.float32))).numpy()
         assert d.max() < 1e-6
@@ -76,7 +78,9 @@ def test_interpolation_weights(hier):
     p = hier.control.position
     dall = np.linalg.norm(p[:, None] - p[None], axis=-1)
     np.fill_diagonal(dall, np.inf)
-    np.testing.assert_allclose(np.sort(np.linalg.norm(p[:, None] - p[nb], axis=-1), 1), np.sort(dall, 1)[:, :5], atol=1e-6)
+    np.testing.assert_allclose(
+        np.sort(np.linalg.norm(p[:, None] - p[nb], axis=-1), 1), np.sort(dall, 1)[:, :5], atol=1e-6
+    )
 
 
 def test_coinciding_point_weight_one():
@@ -102,7 +106,9 @@ def _naive_attributes(t, f, b):
     acc: dict[int, float] = {}
     for c in range(3):
         for k in range(K):
-            acc[int(t.skin_indices[Fc[f, c], k])] = acc.get(int(t.skin_indices[Fc[f, c], k]), 0.0) + b[c] * float(t.skin_weights[Fc[f, c], k])
+            acc[int(t.skin_indices[Fc[f, c], k])] = acc.get(int(t.skin_indices[Fc[f, c], k]), 0.0) + b[c] * float(
+                t.skin_weights[Fc[f, c], k]
+            )
     top = sorted(((w, j) for j, w in acc.items() if w > 0), reverse=True)[:K]
     s = sum(w for w, _ in top)
     return pos, uv, {j: w / s for w, j in top}

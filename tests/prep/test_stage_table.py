@@ -47,13 +47,16 @@ def test_table_is_in_dependency_order_and_covers_every_stage():
         assert {u.stage for u in s.upstream} <= seen, f"{s.name} reads a stage listed after it"
         seen.add(s.name)
         assert dataclasses.is_dataclass(s.config) and s.config.__doc__, s.name
-        assert all(f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
-                   for f in dataclasses.fields(s.config)), f"{s.name}: every option needs its (one) default"
+        assert all(
+            f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
+            for f in dataclasses.fields(s.config)
+        ), f"{s.name}: every option needs its (one) default"
     assert list(COMMANDS) == ["synth", "import", *BY_NAME, "all", "verify"]  # capture sources first
 
 
-@pytest.mark.parametrize("argv_all, argv_stage", [([], {s: [] for s in STAGE_ARGS}), (ALL_ARGS, STAGE_ARGS)],
-                         ids=["defaults", "tiny"])
+@pytest.mark.parametrize(
+    "argv_all, argv_stage", [([], {s: [] for s in STAGE_ARGS}), (ALL_ARGS, STAGE_ARGS)], ids=["defaults", "tiny"]
+)
 def test_all_and_each_stage_command_resolve_to_the_same_configs(tmp_path, argv_all, argv_stage):
     """Defaults live in one place: every stage a single-stage command would run (itself and the upstream
     stages it needs) gets the config ``avatar-prep all`` gives it, with no flags and with the tiny flags."""
@@ -65,7 +68,9 @@ def test_all_and_each_stage_command_resolve_to_the_same_configs(tmp_path, argv_a
         alone = planned([name, *args], tmp_path / "ds")
         assert name in alone
         for stage, cfg in alone.items():
-            assert cfg == everything[stage], f"`avatar-prep {name}` runs {stage} with {cfg}, `all` with {everything[stage]}"
+            assert cfg == everything[stage], (
+                f"`avatar-prep {name}` runs {stage} with {cfg}, `all` with {everything[stage]}"
+            )
     # the upstream stages a single-stage command runs first
     assert list(planned(["project-uv"], tmp_path / "ds")) == ["pose-template", "uv-atlas", "project-uv"]
     assert list(planned(["localize"], tmp_path / "ds")) == ["sample-points", "localize"]
@@ -83,7 +88,9 @@ def _arrays(ds: Path) -> dict[str, bytes]:
     out = {}
     for p in sorted(ds.rglob("*.npz")):
         with np.load(p) as z:
-            out |= {f"{p.relative_to(ds)}:{k}": z[k].tobytes() + str((z[k].dtype, z[k].shape)).encode() for k in z.files}
+            out |= {
+                f"{p.relative_to(ds)}:{k}": z[k].tobytes() + str((z[k].dtype, z[k].shape)).encode() for k in z.files
+            }
     return out
 
 
@@ -113,8 +120,9 @@ def test_recorded_files_and_inputs_are_the_declared_ones(tiny_capture, tiny_data
         rec = stages[s.name]
         folder = stage_dir(tiny_dataset, s.name).name
         for rel in rec["files"]:
-            assert rel.startswith(folder + "/") and any(fnmatch.fnmatch(rel[len(folder) + 1:], pat) for pat in s.outputs), \
-                f"{s.name} wrote {rel}, not among its declared outputs {s.outputs}"
+            assert rel.startswith(folder + "/") and any(
+                fnmatch.fnmatch(rel[len(folder) + 1 :], pat) for pat in s.outputs
+            ), f"{s.name} wrote {rel}, not among its declared outputs {s.outputs}"
         declared = set(metadata_inputs(tiny_capture, s.inputs)) | {f"stage:{u.stage}" for u in s.upstream}
         extra = {FRAME_FILES} if s.name == "project-uv" else set()  # images and masks of the projected views
         assert set(rec["inputs"]) == declared | extra, s.name
@@ -150,7 +158,9 @@ def test_a_stale_upstream_record_is_recomputed_with_its_own_config(tiny_capture,
     """The rule localize applied before the table: a sample-points record whose inputs changed is redone with
     the counts and seed it recorded, not with the defaults."""
     ds = tmp_path / "ds"
-    assert main(["sample-points", "--capture", str(tiny_capture), "--out", str(ds), "--seed", "3", "--anchors", "30"]) == 0
+    assert (
+        main(["sample-points", "--capture", str(tiny_capture), "--out", str(ds), "--seed", "3", "--anchors", "30"]) == 0
+    )
     assert list(planned(["localize"], ds, tiny_capture)) == ["localize"]  # complete: kept as it is
     obj = json.loads((ds / "dataset.json").read_text())
     rec = obj["stages"]["sample-points"]
@@ -158,4 +168,5 @@ def test_a_stale_upstream_record_is_recomputed_with_its_own_config(tiny_capture,
     (ds / "dataset.json").write_text(json.dumps(obj))
     counts = rec["config"]
     assert planned(["localize"], ds, tiny_capture)["sample-points"] == SamplePointsConfig(
-        anchors=30, control=counts["control"], gaussians=counts["gaussians"], seed=3)
+        anchors=30, control=counts["control"], gaussians=counts["gaussians"], seed=3
+    )

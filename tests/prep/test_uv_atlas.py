@@ -13,6 +13,7 @@ from gsavatar.prep import uv_atlas
 from gsavatar.prep.uv_atlas import TexelMap, build_texel_map, ensure_uvs, texel_uv_centers, uv_to_texel
 from gsavatar.geometry.primitives import icosphere
 
+
 # --------------------------------------------------------------------------- fixtures
 def jittered_grid(n: int, lo=(0.05, 0.05), hi=(0.6, 0.7), jitter=0.25, seed=0) -> np.ndarray:
     """Corner UVs [F,3,2] of an n x n grid of quads (2 triangles each), interior vertices jittered."""
@@ -33,13 +34,15 @@ def jittered_grid(n: int, lo=(0.05, 0.05), hi=(0.6, 0.7), jitter=0.25, seed=0) -
 
 def scene_uvs() -> np.ndarray:
     grid = jittered_grid(3)
-    extra = np.array([
-        [[0.70, 0.10], [0.95, 0.12], [0.80, 0.40]],  # isolated chart
-        [[0.72, 0.55], [0.90, 0.55], [0.72, 0.80]],  # two overlapping (mirrored) triangles
-        [[0.90, 0.80], [0.72, 0.80], [0.90, 0.55]],
-        [[0.70, 0.90], [0.80, 0.90], [0.90, 0.90]],  # degenerate (zero area) sliver
-        [[0.852, 0.952], [0.862, 0.953], [0.857, 0.962]],  # tiny: covers no texel centre
-    ])
+    extra = np.array(
+        [
+            [[0.70, 0.10], [0.95, 0.12], [0.80, 0.40]],  # isolated chart
+            [[0.72, 0.55], [0.90, 0.55], [0.72, 0.80]],  # two overlapping (mirrored) triangles
+            [[0.90, 0.80], [0.72, 0.80], [0.90, 0.55]],
+            [[0.70, 0.90], [0.80, 0.90], [0.90, 0.90]],  # degenerate (zero area) sliver
+            [[0.852, 0.952], [0.862, 0.953], [0.857, 0.962]],  # tiny: covers no texel centre
+        ]
+    )
     return np.concatenate([grid, extra])
 
 
@@ -93,6 +96,7 @@ def naive_texel_map(cuv: np.ndarray, size: int, gutter: float) -> TexelMap:
                 face[y, x], bary[y, x] = near[1], near[2]
     return TexelMap(face, bary, size, interior)
 
+
 @pytest.mark.parametrize("gutter", [0.0, 1.0, 1.5])
 def test_matches_naive_reference(gutter):
     cuv = scene_uvs()
@@ -108,6 +112,7 @@ def test_matches_naive_reference(gutter):
     else:
         assert np.array_equal(got.valid, got.interior)
 
+
 def test_full_square_is_all_interior_and_reproduces_uv():
     cuv = np.array([[[0, 0], [1, 0], [1, 1]], [[0, 0], [1, 1], [0, 1]]], np.float64)
     tm = build_texel_map(None, cuv, 37)
@@ -116,6 +121,7 @@ def test_full_square_is_all_interior_and_reproduces_uv():
     np.testing.assert_allclose(uv, texel_uv_centers(37), atol=1e-6)
     # convention: row 0 is the top of the texture (v close to 1), column 0 is u close to 0
     assert uv[0, 0, 1] > 0.98 and uv[0, 0, 0] < 0.02
+
 
 def test_barycentrics_reproduce_texel_centres_and_gutter_is_clamped():
     cuv = jittered_grid(12, seed=4)
@@ -139,6 +145,7 @@ def test_barycentrics_reproduce_texel_centres_and_gutter_is_clamped():
     assert tm.valid[cross].all()
     assert not tm.valid[~cv2.dilate(dil.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)].any()
 
+
 def test_chunking_does_not_change_result(monkeypatch):
     cuv = jittered_grid(9, seed=2)
     a = build_texel_map(None, cuv, 48)
@@ -147,11 +154,18 @@ def test_chunking_does_not_change_result(monkeypatch):
     for x, y in zip(a, b):
         np.testing.assert_array_equal(x, y)
 
+
 def test_template_input_and_errors():
     cuv = np.array([[[0, 0], [1, 0], [1, 1]], [[0, 0], [1, 1], [0, 1]]], np.float32)
     uvs = cuv.reshape(-1, 2)
-    t = Template(np.zeros((4, 3), np.float32), np.array([[0, 1, 2], [0, 2, 3]]), np.zeros((4, 1), np.int32),
-                 np.ones((4, 1), np.float32), uvs, np.arange(6).reshape(2, 3))
+    t = Template(
+        np.zeros((4, 3), np.float32),
+        np.array([[0, 1, 2], [0, 2, 3]]),
+        np.zeros((4, 1), np.int32),
+        np.ones((4, 1), np.float32),
+        uvs,
+        np.arange(6).reshape(2, 3),
+    )
     assert build_texel_map(t, size=8).interior.all()
     with pytest.raises(ValueError):
         build_texel_map(Template(t.vertices, t.faces, t.skin_indices, t.skin_weights), size=8)
@@ -159,6 +173,7 @@ def test_template_input_and_errors():
         build_texel_map(None, cuv[:, :2], 8)
     with pytest.raises(ValueError):
         build_texel_map(None, cuv, 0)
+
 
 # --------------------------------------------------------------------------- xatlas
 def test_ensure_uvs_unwraps_once_and_caches(tmp_path, monkeypatch):
@@ -191,6 +206,7 @@ def test_ensure_uvs_unwraps_once_and_caches(tmp_path, monkeypatch):
     # a different mesh misses the cache
     with pytest.raises(AssertionError, match="cache not used"):
         ensure_uvs(Template(V * 2, F, t.skin_indices, t.skin_weights), tmp_path)
+
 
 @pytest.mark.slow
 def test_speed_30k_triangles_1024():

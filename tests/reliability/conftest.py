@@ -14,9 +14,30 @@ def pose_only_run(tiny_dataset, tmp_path_factory) -> Path:
     from gsavatar.train.cli import main
 
     run = tmp_path_factory.mktemp("rel_run") / "run"
-    assert main(["avatar", "--dataset", str(tiny_dataset), "--out", str(run), "--preset", "tiny", "--steps", "1",
-                 "--variant", "mmlps_dagger", "--lpips", "off", "--image-scale", "0.5", "--no-evaluate",
-                 "--deterministic"]) == 0
+    assert (
+        main(
+            [
+                "avatar",
+                "--dataset",
+                str(tiny_dataset),
+                "--out",
+                str(run),
+                "--preset",
+                "tiny",
+                "--steps",
+                "1",
+                "--variant",
+                "mmlps_dagger",
+                "--lpips",
+                "off",
+                "--image-scale",
+                "0.5",
+                "--no-evaluate",
+                "--deterministic",
+            ]
+        )
+        == 0
+    )
     return run
 
 
@@ -27,6 +48,27 @@ def drive_output(pose_only_run, tiny_capture, tmp_path_factory) -> Path:
     from gsavatar.drive.cli import main
 
     out = tmp_path_factory.mktemp("rel_drive") / "out"
-    assert main(["--run", str(pose_only_run), "--motion", str(tiny_capture), "--out", str(out), "--count", "2",
-                 "--lpips", "off", "--image-scale", "0.25", "--background", "1", "1", "1"]) == 0
+    assert (
+        main(
+            [
+                "--run",
+                str(pose_only_run),
+                "--motion",
+                str(tiny_capture),
+                "--out",
+                str(out),
+                "--count",
+                "2",
+                "--lpips",
+                "off",
+                "--image-scale",
+                "0.25",
+                "--background",
+                "1",
+                "1",
+                "1",
+            ]
+        )
+        == 0
+    )
     return out

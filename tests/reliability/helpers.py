@@ -47,11 +47,14 @@ class Case:
 
 def case_registry(cases: list[Case]) -> Callable[..., Callable[[Setup], Setup]]:
     """``case = case_registry(CASES)``; then ``@case(kind, cli, *expect)`` on a setup function appends a Case."""
+
     def case(kind: str, cli: str, *expect: str) -> Callable[[Setup], Setup]:
         def register(fn: Setup) -> Setup:
             cases.append(Case(kind, cli, fn, expect))
             return fn
+
         return register
+
     return case
 
 

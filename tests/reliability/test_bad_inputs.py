@@ -21,8 +21,20 @@ from gsavatar.drive.cli import main as drive_main
 from gsavatar.prep.cli import main as prep_main
 from gsavatar.train.cli import main as train_main
 from gsavatar.utils.io import write_image
-from reliability.helpers import (PREP_ARGS, Case, Env, case_registry, copy_capture, copy_dataset, edit_json, edit_npz,
-                                 flip_byte, subprocess_env, tree_digest, truncate)
+from reliability.helpers import (
+    PREP_ARGS,
+    Case,
+    Env,
+    case_registry,
+    copy_capture,
+    copy_dataset,
+    edit_json,
+    edit_npz,
+    flip_byte,
+    subprocess_env,
+    tree_digest,
+    truncate,
+)
 
 TRUNCATED_BVH = """HIERARCHY
 ROOT Hips
@@ -40,8 +52,24 @@ Frame Time: 0.0083333
 0 0 0 0 0 0
 """
 """Declares 3 frames, holds 1 (a file cut short while being copied)."""
-TRAIN_ARGS = ["--preset", "tiny", "--lpips", "off", "--image-scale", "0.5", "--log-every", "1", "--no-evaluate",
-              "--deterministic", "--steps", "2", "--max-steps-this-run", "1", "--checkpoint-every", "1"]
+TRAIN_ARGS = [
+    "--preset",
+    "tiny",
+    "--lpips",
+    "off",
+    "--image-scale",
+    "0.5",
+    "--log-every",
+    "1",
+    "--no-evaluate",
+    "--deterministic",
+    "--steps",
+    "2",
+    "--max-steps-this-run",
+    "1",
+    "--checkpoint-every",
+    "1",
+]
 """One step per invocation: the first call trains step 1, the same call again resumes and trains step 2."""
 DRIVE_ARGS = ["--lpips", "off", "--image-scale", "0.25", "--count", "2"]
 MAINS = {"avatar-prep": prep_main, "avatar-train": train_main, "avatar-drive": drive_main}
@@ -152,6 +180,7 @@ def _turn_cameras_around(cap: Path) -> None:
         for c in cal.values():
             c["R"] = (flip @ np.asarray(c["R"])).tolist()
             c["T"] = (flip @ np.ravel(c["T"])).tolist()
+
     edit_json(cap / "calibration.json", edit)
 
 
@@ -241,7 +270,9 @@ def _(env):
     return train_fresh(env, lambda d: truncate(d / "sample_points/hierarchy.npz", 1000))
 
 
-@case("dataset shard with a wrong checksum", "avatar-train", "project_uv/shard-00000.npz", "sha256", "checksum mismatch")
+@case(
+    "dataset shard with a wrong checksum", "avatar-train", "project_uv/shard-00000.npz", "sha256", "checksum mismatch"
+)
 def _(env):
     return train_resume(env, lambda c, d, r: flip_byte(d / "project_uv/shard-00000.npz"))
 
@@ -250,7 +281,13 @@ def _escape(ds: Path) -> None:
     edit_json(ds / "project_uv/manifest.json", lambda o: o["shards"][0].update(file="../../capture/motion.npz"))
 
 
-@case("manifest path escaping the dataset root", "avatar-train", "manifest.json", "shards[0].file", "escapes the dataset root")
+@case(
+    "manifest path escaping the dataset root",
+    "avatar-train",
+    "manifest.json",
+    "shards[0].file",
+    "escapes the dataset root",
+)
 def _(env):
     return train_resume(env, lambda c, d, r: _escape(d))
 
@@ -305,8 +342,13 @@ def _npz(env: Env, name: str = "walk.npz", **changes) -> Path:
     from gsavatar.data_schema import load_capture
 
     P = load_capture(env.capture).rig.pose_dim
-    arrays = {"pose": np.zeros((3, P), np.float32), "root_rotation": np.zeros((3, 3), np.float32),
-              "root_translation": np.zeros((3, 3), np.float32), "fps": np.float32(15.0), **changes}
+    arrays = {
+        "pose": np.zeros((3, P), np.float32),
+        "root_rotation": np.zeros((3, 3), np.float32),
+        "root_translation": np.zeros((3, 3), np.float32),
+        "fps": np.float32(15.0),
+        **changes,
+    }
     np.savez(env.tmp / name, **arrays)
     return env.tmp / name
 
@@ -391,7 +433,10 @@ def _(env):
 def _(env):
     results = env.tmp / "results"
     results.write_text("not a directory")
-    return ["--run", str(env.run), "--motion", str(env.capture), "--out", str(results / "out"), *DRIVE_ARGS], [env.run, results]
+    return ["--run", str(env.run), "--motion", str(env.capture), "--out", str(results / "out"), *DRIVE_ARGS], [
+        env.run,
+        results,
+    ]
 
 
 # --------------------------------------------------------------------------- tests
@@ -435,13 +480,25 @@ def test_suite_covers_enough_kinds():
 def test_console_scripts_exit_2_with_one_line_and_no_traceback(cli, env):
     """The installed entry points (not just ``main``) turn bad input into exit code 2."""
     missing = str(env.tmp / "missing")
-    argv = {"avatar-prep": ["all", "--capture", missing, "--out", str(env.tmp / "ds")],
-            "avatar-train": ["avatar", "--dataset", missing, "--out", str(env.tmp / "run")],
-            "avatar-drive": ["--run", str(env.run), "--motion", missing, "--out", str(env.tmp / "out")]}[cli]
+    argv = {
+        "avatar-prep": ["all", "--capture", missing, "--out", str(env.tmp / "ds")],
+        "avatar-train": ["avatar", "--dataset", missing, "--out", str(env.tmp / "run")],
+        "avatar-drive": ["--run", str(env.run), "--motion", missing, "--out", str(env.tmp / "out")],
+    }[cli]
     exe = Path(sys.executable).with_name(cli)
-    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", {"avatar-prep": "gsavatar.prep.cli",
-                                                                  "avatar-train": "gsavatar.train.cli",
-                                                                  "avatar-drive": "gsavatar.drive.cli"}[cli]]
+    cmd = (
+        [str(exe)]
+        if exe.exists()
+        else [
+            sys.executable,
+            "-m",
+            {
+                "avatar-prep": "gsavatar.prep.cli",
+                "avatar-train": "gsavatar.train.cli",
+                "avatar-drive": "gsavatar.drive.cli",
+            }[cli],
+        ]
+    )
     r = subprocess.run([*cmd, *argv], capture_output=True, text=True, env=subprocess_env(), timeout=300)
     assert r.returncode == 2, r.stderr
     errors = [ln for ln in r.stderr.splitlines() if ln.startswith("error: ")]

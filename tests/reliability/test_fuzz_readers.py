@@ -90,9 +90,18 @@ BVH_SEED_FRAMES = 40
 
 def fuzz(examples: int) -> settings:
     """Reproducible settings: fixed examples (``derandomize``), no database, the deadline above."""
-    return settings(max_examples=examples, deadline=DEADLINE, derandomize=True, database=None,
-                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
-                                           HealthCheck.large_base_example, HealthCheck.filter_too_much])
+    return settings(
+        max_examples=examples,
+        deadline=DEADLINE,
+        derandomize=True,
+        database=None,
+        suppress_health_check=[
+            HealthCheck.too_slow,
+            HealthCheck.data_too_large,
+            HealthCheck.large_base_example,
+            HealthCheck.filter_too_much,
+        ],
+    )
 
 
 # --------------------------------------------------------------------------- the property
@@ -103,6 +112,7 @@ class ReaderHung(Exception):
 @contextlib.contextmanager
 def watched(max_peak: int) -> Iterator[None]:
     """Fail a block that runs past :data:`HANG_S` (an alarm) or whose peak traced allocation exceeds ``max_peak``."""
+
     def on_alarm(signum, frame):
         raise ReaderHung(f"reader still running after {HANG_S:g} s")
 
@@ -167,8 +177,9 @@ def scratch(root: Path) -> Iterator[Path]:
 
 # --------------------------------------------------------------------------- mutations: bytes and text
 def mutate_bytes(data, raw: bytes) -> bytes:
-    kind = data.draw(st.sampled_from(("truncate", "flip", "insert", "delete", "duplicate", "random", "empty")),
-                     label="bytes")
+    kind = data.draw(
+        st.sampled_from(("truncate", "flip", "insert", "delete", "duplicate", "random", "empty")), label="bytes"
+    )
     n = len(raw)
     if kind == "empty" or n == 0:
         return b""
@@ -187,9 +198,32 @@ def mutate_bytes(data, raw: bytes) -> bytes:
     return raw[:i] + raw[j:] if kind == "delete" else raw[:j] + raw[i:j] + raw[j:]
 
 
-EXTREME_TOKENS = ("1e308", "-1e308", "1e309", "-1e309", "4.9e-324", "nan", "NaN", "-nan", "inf", "-Infinity",
-                  "999999999", "-999999999", str(10**30), str(2**63), str(-(2**63) - 1), "0", "-0", "-1",
-                  "1_000", "0x1F", "1,5", "\u0663", "x", "")
+EXTREME_TOKENS = (
+    "1e308",
+    "-1e308",
+    "1e309",
+    "-1e309",
+    "4.9e-324",
+    "nan",
+    "NaN",
+    "-nan",
+    "inf",
+    "-Infinity",
+    "999999999",
+    "-999999999",
+    str(10**30),
+    str(2**63),
+    str(-(2**63) - 1),
+    "0",
+    "-0",
+    "-1",
+    "1_000",
+    "0x1F",
+    "1,5",
+    "\u0663",
+    "x",
+    "",
+)
 """Replacements for a number in a text file (``\\u0663``: an Arabic-Indic 3, which ``int()`` accepts)."""
 _NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
 
@@ -197,8 +231,9 @@ _NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
 def mutate_text(data, text: str, vocab: tuple[str, ...] = ()) -> bytes:
     """A line-level mutation of ``text`` (``vocab``: lines/tokens of the format to insert), or a byte-level one."""
     lines = text.splitlines(keepends=True)
-    kind = data.draw(st.sampled_from(("number", "token", "dup_line", "del_line", "swap_lines", "insert_line",
-                                      "bytes")), label="text")
+    kind = data.draw(
+        st.sampled_from(("number", "token", "dup_line", "del_line", "swap_lines", "insert_line", "bytes")), label="text"
+    )
     if kind == "bytes" or not lines:
         return mutate_bytes(data, text.encode())
     pick = lambda label: data.draw(st.integers(0, len(lines) - 1), label=label)  # noqa: E731
@@ -233,9 +268,35 @@ def deep(levels: int, inner=0):
     return v
 
 
-WEIRD_JSON = (None, True, False, "", "x", "../../etc/passwd", 0, -1, 1, 0.5, 2**63, -(2**63) - 1, 10**30, 1e308,
-              -1e308, 5e-324, float("nan"), float("inf"), float("-inf"), [], {}, [1, 2], [[1, 2, 3]] * 3,
-              {"a": 1}, list(range(2000)), deep(200), "\u00e9\ud7ff")
+WEIRD_JSON = (
+    None,
+    True,
+    False,
+    "",
+    "x",
+    "../../etc/passwd",
+    0,
+    -1,
+    1,
+    0.5,
+    2**63,
+    -(2**63) - 1,
+    10**30,
+    1e308,
+    -1e308,
+    5e-324,
+    float("nan"),
+    float("inf"),
+    float("-inf"),
+    [],
+    {},
+    [1, 2],
+    [[1, 2, 3]] * 3,
+    {"a": 1},
+    list(range(2000)),
+    deep(200),
+    "\u00e9\ud7ff",
+)
 """Values of other types and extremes (``json.dumps`` writes the non-finite floats as NaN/Infinity literals)."""
 
 
@@ -258,8 +319,10 @@ def _at(obj, path: tuple):
 def mutate_json(data, obj) -> bytes:
     """A structural mutation of the JSON value ``obj``, serialised; or a byte-level one of its text."""
     obj = json.loads(json.dumps(obj))  # a copy
-    kind = data.draw(st.sampled_from(("replace", "number", "delete", "add_key", "dup_key", "wrap", "stringify",
-                                      "bytes")), label="json")
+    kind = data.draw(
+        st.sampled_from(("replace", "number", "delete", "add_key", "dup_key", "wrap", "stringify", "bytes")),
+        label="json",
+    )
     if kind == "bytes":
         return mutate_bytes(data, json.dumps(obj, indent=1).encode())
     paths = list(json_paths(obj))
@@ -286,8 +349,11 @@ def mutate_json(data, obj) -> bytes:
     path = data.draw(st.sampled_from(paths), label="path")
     old = _at(obj, path)
     if kind == "replace" or kind == "number":
-        pool = (1e308, -1e308, 10**30, 2**64, -(2**63) - 1, 5e-324, float("nan"), float("inf"), 0, -1, True,
-                None, "1") if kind == "number" else WEIRD_JSON
+        pool = (
+            (1e308, -1e308, 10**30, 2**64, -(2**63) - 1, 5e-324, float("nan"), float("inf"), 0, -1, True, None, "1")
+            if kind == "number"
+            else WEIRD_JSON
+        )
         new = data.draw(st.sampled_from(pool), label="new value")
     elif kind == "wrap":  # written as text: json.dumps itself recurses too deep for 5000 levels
         levels = data.draw(st.sampled_from((1, 70, 5000)), label="levels")
@@ -378,8 +444,9 @@ EXTREME_VALUES = (1e308, -1e308, np.nan, np.inf, -np.inf, 5e-324, 1e38, 4e38, 0.
 def mutate_npz(data, arrays: dict[str, np.ndarray]) -> bytes:
     """A structural mutation of the arrays of an npz, serialised; or a byte-level one of the archive."""
     arrays = {k: np.array(v) for k, v in arrays.items()}
-    kind = data.draw(st.sampled_from(("drop", "extra", "dtype", "shape", "value", "header", "declared", "bytes",
-                                      "npy")), label="npz")
+    kind = data.draw(
+        st.sampled_from(("drop", "extra", "dtype", "shape", "value", "header", "declared", "bytes", "npy")), label="npz"
+    )
     key = data.draw(st.sampled_from(sorted(arrays)), label="key")
     compressed = data.draw(st.booleans(), label="compressed")
     if kind == "bytes":
@@ -396,21 +463,54 @@ def mutate_npz(data, arrays: dict[str, np.ndarray]) -> bytes:
     if kind == "drop":
         del arrays[key]
     elif kind == "extra":
-        arrays["zz_unknown"] = data.draw(st.sampled_from((np.zeros(3), np.array("x"), np.zeros((2, 2), object))),
-                                         label="extra array")
+        arrays["zz_unknown"] = data.draw(
+            st.sampled_from((np.zeros(3), np.array("x"), np.zeros((2, 2), object))), label="extra array"
+        )
     elif kind == "dtype":
-        dt = data.draw(st.sampled_from(("bool", "int8", "uint8", "int64", "uint64", "float16", "float64",
-                                        "complex64", "str", "object", "datetime", "struct")), label="dtype")
+        dt = data.draw(
+            st.sampled_from(
+                (
+                    "bool",
+                    "int8",
+                    "uint8",
+                    "int64",
+                    "uint64",
+                    "float16",
+                    "float64",
+                    "complex64",
+                    "str",
+                    "object",
+                    "datetime",
+                    "struct",
+                )
+            ),
+            label="dtype",
+        )
         arrays[key] = _other_dtype(arrays[key], dt)
     elif kind == "shape":
-        how = data.draw(st.sampled_from(("no_frames", "one_more_frame", "one_less_frame", "extra_axis", "flat",
-                                         "scalar", "transposed", "wider", "5d")), label="shape")
+        how = data.draw(
+            st.sampled_from(
+                (
+                    "no_frames",
+                    "one_more_frame",
+                    "one_less_frame",
+                    "extra_axis",
+                    "flat",
+                    "scalar",
+                    "transposed",
+                    "wider",
+                    "5d",
+                )
+            ),
+            label="shape",
+        )
         arrays[key] = _other_shape(arrays[key], how)
     elif data.draw(st.booleans(), label="integer extremes"):  # value: int64 -2^63 (its abs() is negative)
         a = np.array(arrays[key], dtype=np.int64) if arrays[key].dtype.kind in "biuf" else arrays[key]
         if a.size and a.dtype.kind == "i":
-            a.reshape(-1)[0] = data.draw(st.sampled_from((np.iinfo(np.int64).min, np.iinfo(np.int64).max)),
-                                         label="value")
+            a.reshape(-1)[0] = data.draw(
+                st.sampled_from((np.iinfo(np.int64).min, np.iinfo(np.int64).max)), label="value"
+            )
         arrays[key] = a
     else:  # value
         a = arrays[key].astype(np.float64) if arrays[key].dtype.kind in "biuf" else arrays[key]
@@ -427,11 +527,13 @@ def mutate_npz(data, arrays: dict[str, np.ndarray]) -> bytes:
 # --------------------------------------------------------------------------- seeds
 def small_bvh(frames: int = 3) -> str:
     """Three joints (one with position channels, one with none), an End Site, ``frames`` rows."""
-    return ("HIERARCHY\nROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 6 Xposition Yposition Zposition Zrotation Yrotation "
-            "Xrotation\n JOINT Spine\n {\n  OFFSET 0 1 0\n  CHANNELS 3 Zrotation Xrotation Yrotation\n  JOINT Head\n"
-            "  {\n   OFFSET 0 0.5 0.1\n   CHANNELS 0\n   End Site\n   {\n    OFFSET 0 0.2 0\n   }\n  }\n }\n}\n"
-            f"MOTION\nFrames: {frames}\nFrame Time: 0.0333333\n"
-            + "".join(f"{f * 0.1:g} 1.0 -0.5 {f} {-2 * f} 3.5 10 -20 {f * 5}\n" for f in range(frames)))
+    return (
+        "HIERARCHY\nROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 6 Xposition Yposition Zposition Zrotation Yrotation "
+        "Xrotation\n JOINT Spine\n {\n  OFFSET 0 1 0\n  CHANNELS 3 Zrotation Xrotation Yrotation\n  JOINT Head\n"
+        "  {\n   OFFSET 0 0.5 0.1\n   CHANNELS 0\n   End Site\n   {\n    OFFSET 0 0.2 0\n   }\n  }\n }\n}\n"
+        f"MOTION\nFrames: {frames}\nFrame Time: 0.0333333\n"
+        + "".join(f"{f * 0.1:g} 1.0 -0.5 {f} {-2 * f} 3.5 10 -20 {f * 5}\n" for f in range(frames))
+    )
 
 
 def cmu_bvh_head(frames: int = BVH_SEED_FRAMES) -> str | None:
@@ -443,10 +545,30 @@ def cmu_bvh_head(frames: int = BVH_SEED_FRAMES) -> str | None:
     return "".join(lines[: m + 1]) + f"Frames: {frames}\n" + lines[m + 2] + "".join(lines[m + 3 : m + 3 + frames])
 
 
-BVH_VOCAB = ("HIERARCHY", "ROOT Hips", "JOINT Extra", "End Site", "{", "}", "OFFSET 0 0 0", "OFFSET 1e308 0 0",
-             "CHANNELS 3 Zrotation Yrotation Xrotation", "CHANNELS 7", "CHANNELS -1", "CHANNELS 3 Wrotation",
-             "MOTION", "Frames: 999999999", "Frames: 0", "Frames: -3", "Frames: 1e3", "Frame Time: 1e-9",
-             "Frame Time: 0", "Frame Time: nan", "Frame Time: 0.0083333", "Hips")
+BVH_VOCAB = (
+    "HIERARCHY",
+    "ROOT Hips",
+    "JOINT Extra",
+    "End Site",
+    "{",
+    "}",
+    "OFFSET 0 0 0",
+    "OFFSET 1e308 0 0",
+    "CHANNELS 3 Zrotation Yrotation Xrotation",
+    "CHANNELS 7",
+    "CHANNELS -1",
+    "CHANNELS 3 Wrotation",
+    "MOTION",
+    "Frames: 999999999",
+    "Frames: 0",
+    "Frames: -3",
+    "Frames: 1e3",
+    "Frame Time: 1e-9",
+    "Frame Time: 0",
+    "Frame Time: nan",
+    "Frame Time: 0.0083333",
+    "Hips",
+)
 
 
 def nest(text: str, depth: int) -> str:
@@ -463,17 +585,27 @@ def cameras_json(w: int = 32, h: int = 24) -> dict:
     out = {}
     for i, ang in enumerate((0.0, 1.5)):
         R, T = look_at(np.array([3 * np.sin(ang), 0.5, 3 * np.cos(ang)]), np.array([0, 0.5, 0]))
-        out[f"cam{i:02d}"] = {"K": [[40.0, 0, w / 2], [0, 40.0, h / 2], [0, 0, 1]], "R": R.tolist(),
-                              "T": T.tolist(), "distCoeff": [0.01, -0.002, 0, 0, 0], "imgSize": [w, h]}
+        out[f"cam{i:02d}"] = {
+            "K": [[40.0, 0, w / 2], [0, 40.0, h / 2], [0, 0, 1]],
+            "R": R.tolist(),
+            "T": T.tolist(),
+            "distCoeff": [0.01, -0.002, 0, 0, 0],
+            "imgSize": [w, h],
+        }
     return out
 
 
 def source_calibration_json() -> dict:
     """A THuman4.0/AvatarReX source calibration: flat K/R lists, T as [3, 1], a key that is not a plain name."""
     cams = cameras_json(96, 128)
-    return {"22010708": {**cams["cam00"], "K": np.ravel(cams["cam00"]["K"]).tolist(),
-                         "T": [[t] for t in cams["cam00"]["T"]]},
-            "cam 3": {**cams["cam01"], "R": np.ravel(cams["cam01"]["R"]).tolist()}}
+    return {
+        "22010708": {
+            **cams["cam00"],
+            "K": np.ravel(cams["cam00"]["K"]).tolist(),
+            "T": [[t] for t in cams["cam00"]["T"]],
+        },
+        "cam 3": {**cams["cam01"], "R": np.ravel(cams["cam01"]["R"]).tolist()},
+    }
 
 
 def actorshq_csv() -> str:
@@ -488,8 +620,10 @@ def actorshq_csv() -> str:
 def smplx_rig_json() -> dict:
     """The importers' SMPL-X rig (55 joints in model order, one axis-angle parameter per non-root joint)."""
     heads = rest_heads()
-    joints = [{"name": n, "parent": None if p < 0 else SMPLX_JOINT_NAMES[p], "head": heads[j].tolist()}
-              for j, (n, p) in enumerate(zip(SMPLX_JOINT_NAMES, SMPLX_PARENTS))]
+    joints = [
+        {"name": n, "parent": None if p < 0 else SMPLX_JOINT_NAMES[p], "head": heads[j].tolist()}
+        for j, (n, p) in enumerate(zip(SMPLX_JOINT_NAMES, SMPLX_PARENTS))
+    ]
     params = [{"name": f"{n}.r", "joint": n, "kind": "axis_angle"} for n in SMPLX_JOINT_NAMES[1:]]
     return {"joints": joints, "pose_params": params, "groups": {BODY_GROUPS[0]: [p["name"] for p in params]}}
 
@@ -593,10 +727,13 @@ def test_joint_map(work, data):
 # --------------------------------------------------------------------------- motion npz (drive) and AMASS
 def motion_arrays(frames: int = 5, pose_dim: int = 3) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(0)
-    return {"pose": rng.normal(0, 0.2, (frames, pose_dim)).astype(np.float32),
-            "root_rotation": rng.normal(0, 0.2, (frames, 3)).astype(np.float32),
-            "root_translation": rng.normal(0, 0.2, (frames, 3)).astype(np.float32),
-            "face": np.zeros((frames, 2), np.float32), "fps": np.float32(15.0)}
+    return {
+        "pose": rng.normal(0, 0.2, (frames, pose_dim)).astype(np.float32),
+        "root_rotation": rng.normal(0, 0.2, (frames, 3)).astype(np.float32),
+        "root_translation": rng.normal(0, 0.2, (frames, 3)).astype(np.float32),
+        "face": np.zeros((frames, 2), np.float32),
+        "fps": np.float32(15.0),
+    }
 
 
 def _check_driving(m, pose_dim: int) -> None:
@@ -622,8 +759,13 @@ def test_driving_motion_npz(work, data):
 
 def amass_arrays(frames: int = 6) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(1)
-    return {"poses": rng.normal(0, 0.3, (frames, 165)), "trans": rng.normal(0, 0.5, (frames, 3)),
-            "mocap_frame_rate": np.array(120.0), "betas": np.zeros(16), "gender": np.array("neutral")}
+    return {
+        "poses": rng.normal(0, 0.3, (frames, 165)),
+        "trans": rng.normal(0, 0.5, (frames, 3)),
+        "mocap_frame_rate": np.array(120.0),
+        "betas": np.zeros(16),
+        "gender": np.array("neutral"),
+    }
 
 
 @fuzz(40)
@@ -642,8 +784,12 @@ def test_amass_npz(work, data):
 def test_npz_huge_shapes_fail_fast(work):
     """An .npy header claiming 8 TB, a zip directory claiming 3 GiB: refused before anything is allocated."""
     rig = rig_from_json(RIG_JSON)
-    for i, raw in enumerate((lying_header_npz(motion_arrays(), "pose", (10**6, 10**6)),
-                             declare_uncompressed_size(npz_bytes(motion_arrays(), True), "pose.npy", 3 << 30))):
+    for i, raw in enumerate(
+        (
+            lying_header_npz(motion_arrays(), "pose", (10**6, 10**6)),
+            declare_uncompressed_size(npz_bytes(motion_arrays(), True), "pose.npy", 3 << 30),
+        )
+    ):
         path = write(work / f"huge{i}.npz", raw)
         assert "pose" in fails_fast(lambda: load_driving_motion(path, rig), path.name)
     path = write(work / "huge_amass.npz", lying_header_npz(amass_arrays(), "poses", (999_999_999, 165)))
@@ -652,8 +798,13 @@ def test_npz_huge_shapes_fail_fast(work):
 
 # --------------------------------------------------------------------------- capture (load_capture)
 CAPTURE_FILES = {
-    "capture.json": "json", "calibration.json": "json", "splits.json": "json", "template/rig.json": "json",
-    "motion.npz": "npz", "template/skin_weights.npz": "npz", "template/mesh.obj": "text",
+    "capture.json": "json",
+    "calibration.json": "json",
+    "splits.json": "json",
+    "template/rig.json": "json",
+    "motion.npz": "npz",
+    "template/skin_weights.npz": "npz",
+    "template/mesh.obj": "text",
 }
 """Files of a capture that load_capture reads, and how they are mutated."""
 
@@ -703,9 +854,26 @@ def obj_seed(work) -> str:
     return (work / "seed.obj").read_text() + "vn 0 0 1\nf 1/1 2/2 4/3 3/1\nf -1/-1 -2/-2 -3/-3\ng group\ns off\n"
 
 
-OBJ_VOCAB = ("v 0 0 0", "v 1e39 0 0", "vt 0.5", "vt 0.5 0.5", "vn nan 0 1", "f 1 2", "f 1 2 3", "f 1/1 2/2 3/3",
-             "f 1//1 2//2 3//3", "f 0 1 2", "f -99 1 2", "f 1/999999999999 2/1 3/1", "f a b c", "f 1/2/3/4 5 6",
-             "mtllib x.mtl", "# comment", "1/1", "-1")
+OBJ_VOCAB = (
+    "v 0 0 0",
+    "v 1e39 0 0",
+    "vt 0.5",
+    "vt 0.5 0.5",
+    "vn nan 0 1",
+    "f 1 2",
+    "f 1 2 3",
+    "f 1/1 2/2 3/3",
+    "f 1//1 2//2 3//3",
+    "f 0 1 2",
+    "f -99 1 2",
+    "f 1/999999999999 2/1 3/1",
+    "f a b c",
+    "f 1/2/3/4 5 6",
+    "mtllib x.mtl",
+    "# comment",
+    "1/1",
+    "-1",
+)
 
 
 @fuzz(60)
@@ -729,8 +897,15 @@ def image_seeds(work) -> dict[str, bytes]:
     rgb = (rng.random((12, 10, 3)) * 255).astype(np.uint8)
     grey16 = (rng.random((12, 10)) * 65535).astype(np.uint16)
     rgba = np.dstack([rgb, np.where(rng.random((12, 10)) > 0.5, 255, 0).astype(np.uint8)])
-    seeds = {name: cv2.imencode(ext, a)[1].tobytes() for name, ext, a in (
-        ("rgb.png", ".png", rgb), ("grey16.png", ".png", grey16), ("rgba.png", ".png", rgba), ("rgb.jpg", ".jpg", rgb))}
+    seeds = {
+        name: cv2.imencode(ext, a)[1].tobytes()
+        for name, ext, a in (
+            ("rgb.png", ".png", rgb),
+            ("grey16.png", ".png", grey16),
+            ("rgba.png", ".png", rgba),
+            ("rgb.jpg", ".jpg", rgb),
+        )
+    }
     write_image(work / "seed.exr", rng.random((12, 10, 3)))
     seeds["linear.exr"] = (work / "seed.exr").read_bytes()
     return seeds
@@ -741,15 +916,24 @@ def mask_seeds() -> dict[str, bytes]:
     m[3:9, 2:8] = 255
     red = np.dstack([np.zeros_like(m), np.zeros_like(m), m])  # BGR: red on black
     rgba = np.dstack([np.full((12, 10, 3), 80, np.uint8), m])
-    return {name: cv2.imencode(".png", a)[1].tobytes() for name, a in (
-        ("grey.png", m), ("binary.png", (m > 0).astype(np.uint8)), ("red.png", red), ("alpha.png", rgba),
-        ("grey16.png", m.astype(np.uint16) * 257))}
+    return {
+        name: cv2.imencode(".png", a)[1].tobytes()
+        for name, a in (
+            ("grey.png", m),
+            ("binary.png", (m > 0).astype(np.uint8)),
+            ("red.png", red),
+            ("alpha.png", rgba),
+            ("grey16.png", m.astype(np.uint16) * 257),
+        )
+    }
 
 
 def mutate_image(data, raw: bytes) -> bytes:
     if raw.startswith(b"\x89PNG") and data.draw(st.booleans(), label="resize header"):
-        w, h = data.draw(st.sampled_from(((1, 1), (0, 5), (2**31 - 1, 2**31 - 1), (65536, 65536), (30000, 30000),
-                                          (1, 10**9))), label="IHDR size")
+        w, h = data.draw(
+            st.sampled_from(((1, 1), (0, 5), (2**31 - 1, 2**31 - 1), (65536, 65536), (30000, 30000), (1, 10**9))),
+            label="IHDR size",
+        )
         return png_with_size(raw, w, h)
     return mutate_bytes(data, raw)
 
@@ -793,8 +977,12 @@ def test_import_convert_mask(work, data):
 
 
 @fuzz(60)
-@given(raw=hnp.arrays(dtype=st.sampled_from((np.uint8, np.uint16, np.bool_, np.int32, np.float32)),
-                      shape=hnp.array_shapes(min_dims=0, max_dims=4, min_side=0, max_side=5)))
+@given(
+    raw=hnp.arrays(
+        dtype=st.sampled_from((np.uint8, np.uint16, np.bool_, np.int32, np.float32)),
+        shape=hnp.array_shapes(min_dims=0, max_dims=4, min_side=0, max_side=5),
+    )
+)
 def test_decode_mask(raw):
     m = outcome(lambda: decode_mask(raw, "masks/cam00/00000000.png"), "00000000.png")
     if m is not None:
@@ -854,8 +1042,10 @@ def test_run_config(work, data):
                 return done.args[0]
             raise AssertionError("load_run returned without building the net")
 
-        with mock.patch("gsavatar.runs.load.load_scene", lambda dataset: None), \
-                mock.patch("gsavatar.runs.load.build_net", _build_net_stand_in):
+        with (
+            mock.patch("gsavatar.runs.load.load_scene", lambda dataset: None),
+            mock.patch("gsavatar.runs.load.build_net", _build_net_stand_in),
+        ):
             mcfg = outcome(read, "config.json")
     if mcfg is not None:
         _check_model_config(mcfg)
@@ -870,8 +1060,14 @@ def checkpoint_seed() -> tuple[dict, dict]:
     config = {"model": {"hidden": [4], "sh_degree": 1}, "train": {"steps": 5}}
     buf = io.BytesIO()
     with mock.patch("gsavatar.runs.checkpoint.atomic_write_bytes", lambda path, b: buf.write(bytes(b))):
-        save_checkpoint("x.pt", step=3, config=config, modules={"net": net},
-                        optimizer=torch.optim.Adam(net.parameters()), extra={"note": "seed"})
+        save_checkpoint(
+            "x.pt",
+            step=3,
+            config=config,
+            modules={"net": net},
+            optimizer=torch.optim.Adam(net.parameters()),
+            extra={"note": "seed"},
+        )
     return torch.load(io.BytesIO(buf.getvalue()), weights_only=True), config
 
 
@@ -880,8 +1076,12 @@ def mutate_checkpoint(data, state: dict) -> bytes:
     state = dict(state)  # the tensors are shared with the seed, never changed
     if kind == "field":
         key = data.draw(st.sampled_from(sorted(state) + ["zz_unknown"]), label="key")
-        state[key] = data.draw(st.sampled_from((None, "x", 2, -1, 10**30, [], {}, [1], torch.zeros(2), {"a": 1},
-                                                "gsavatar-avatar-checkpoint")), label="value")
+        state[key] = data.draw(
+            st.sampled_from(
+                (None, "x", 2, -1, 10**30, [], {}, [1], torch.zeros(2), {"a": 1}, "gsavatar-avatar-checkpoint")
+            ),
+            label="value",
+        )
     elif kind == "drop":
         del state[data.draw(st.sampled_from(sorted(state)), label="key")]
     elif kind == "config":
@@ -897,8 +1097,10 @@ def test_load_checkpoint(work, checkpoint_seed, data):
     state, config = checkpoint_seed
     with scratch(work) as d:
         path = write(d / "latest.pt", mutate_checkpoint(data, state))
-        got = outcome(lambda: load_checkpoint(path, config, strict_config_keys=("model",),
-                                              defaults={"model": {"sh_degree": 1}}), "latest.pt")
+        got = outcome(
+            lambda: load_checkpoint(path, config, strict_config_keys=("model",), defaults={"model": {"sh_degree": 1}}),
+            "latest.pt",
+        )
     if got is not None:
         assert isinstance(got["config"], dict) and got["config"].get("model") in (config["model"], {"hidden": [4]})
         assert isinstance(got["step"], int) and got["step"] >= 0 and isinstance(got["modules"], dict)
@@ -919,8 +1121,15 @@ def test_source_calibration(work, data):
 @fuzz(50)
 @given(data=st.data())
 def test_actorshq_calibration(work, data):
-    vocab = (",".join(CSV_FIELDS), "Cam003,96,128,0,0,0,0,0,3,1,1,0.5,0.5", "Cam001,96,128", '"', ",,,", "Cam 4",
-             "x" * 140_000)  # a field over csv.field_size_limit()
+    vocab = (
+        ",".join(CSV_FIELDS),
+        "Cam003,96,128,0,0,0,0,0,3,1,1,0.5,0.5",
+        "Cam001,96,128",
+        '"',
+        ",,,",
+        "Cam 4",
+        "x" * 140_000,
+    )  # a field over csv.field_size_limit()
     with scratch(work) as d:
         path = write(d / "calibration.csv", mutate_text(data, actorshq_csv(), vocab))
         got = outcome(lambda: read_actorshq_calibration(path), "calibration.csv")
@@ -934,8 +1143,17 @@ def test_actorshq_calibration(work, data):
 def test_missing_views(work, data):
     text = "images/cam00/00000003.jpg\r\nD:\\data\\22010708\\00000010.jpg\n22010708/mask/pha/00000011.jpg\n\n"
     names = {"cam00": "cam00", "cam01": "22010708"}
-    vocab = ("cam00/", "x.jpg", "cam00/abc.jpg", "/", "\\", "cam00/-1.jpg", "cam00/" + "9" * 40 + ".jpg",
-             "cam00/\u00b2.jpg", "cam00/\u0663.jpg")
+    vocab = (
+        "cam00/",
+        "x.jpg",
+        "cam00/abc.jpg",
+        "/",
+        "\\",
+        "cam00/-1.jpg",
+        "cam00/" + "9" * 40 + ".jpg",
+        "cam00/\u00b2.jpg",
+        "cam00/\u0663.jpg",
+    )
     with scratch(work) as d:
         path = write(d / "missing_img_files.txt", mutate_text(data, text, vocab))
         got = outcome(lambda: read_missing_views(path, names), "missing_img_files.txt")
@@ -1016,63 +1234,116 @@ FOUND: dict[str, tuple[Callable, tuple[str, ...]]] = {
     # name: (work, capture, checkpoint seed -> a read that must raise, fragments of its message)
     "checkpoint version is a tensor (was RuntimeError: Boolean value of Tensor ... ambiguous)": (
         lambda w, c, s: lambda: load_checkpoint(_checkpoint_with(w, s[0], version=torch.zeros(2))),
-        ("latest.pt", "version")),
+        ("latest.pt", "version"),
+    ),
     "checkpoint step is a string (was accepted; load_run's int() failed later)": (
-        lambda w, c, s: lambda: load_checkpoint(_checkpoint_with(w, s[0], step="x")), ("latest.pt", "step")),
+        lambda w, c, s: lambda: load_checkpoint(_checkpoint_with(w, s[0], step="x")),
+        ("latest.pt", "step"),
+    ),
     "run config.json model field null (was accepted: init_normal_scale_ratio=None)": (
         lambda w, c, s: lambda: load_run(_run_with_model(w, init_normal_scale_ratio=None)),
-        ("config.json", "model.init_normal_scale_ratio")),
+        ("config.json", "model.init_normal_scale_ratio"),
+    ),
     "run config.json model.hidden a string (was accepted as the digits (1, 2, 8))": (
-        lambda w, c, s: lambda: load_run(_run_with_model(w, hidden="128")), ("config.json", "model.hidden")),
+        lambda w, c, s: lambda: load_run(_run_with_model(w, hidden="128")),
+        ("config.json", "model.hidden"),
+    ),
     "missing_img_files.txt line '/' (was IndexError)": (
         lambda w, c, s: lambda: read_missing_views(write(w / "missing_img_files.txt", b"/\n"), {"cam00": "cam00"}),
-        ("missing_img_files.txt", "line 1")),
+        ("missing_img_files.txt", "line 1"),
+    ),
     "missing_img_files.txt frame '\u00b2' (was ValueError from int() naming no file)": (
-        lambda w, c, s: lambda: read_missing_views(write(w / "missing_img_files.txt", "cam00/\u00b2.jpg".encode()),
-                                                   {"cam00": "cam00"}), ("missing_img_files.txt", "line 1")),
+        lambda w, c, s: (
+            lambda: read_missing_views(
+                write(w / "missing_img_files.txt", "cam00/\u00b2.jpg".encode()), {"cam00": "cam00"}
+            )
+        ),
+        ("missing_img_files.txt", "line 1"),
+    ),
     "calibration.csv with a non-UTF-8 byte (was UnicodeDecodeError)": (
-        lambda w, c, s: lambda: read_actorshq_calibration(
-            write(w / "calibration.csv", b"\x80" + actorshq_csv().encode())), ("calibration.csv", "UTF-8")),
+        lambda w, c, s: (
+            lambda: read_actorshq_calibration(write(w / "calibration.csv", b"\x80" + actorshq_csv().encode()))
+        ),
+        ("calibration.csv", "UTF-8"),
+    ),
     "calibration.csv with a 140000-character field (was csv.Error)": (
-        lambda w, c, s: lambda: read_actorshq_calibration(
-            write(w / "calibration.csv", (actorshq_csv() + "x" * 140_000 + "\n").encode())),
-        ("calibration.csv", "CSV")),
+        lambda w, c, s: (
+            lambda: read_actorshq_calibration(
+                write(w / "calibration.csv", (actorshq_csv() + "x" * 140_000 + "\n").encode())
+            )
+        ),
+        ("calibration.csv", "CSV"),
+    ),
     "PNG header claiming 65536 x 65536 as an image (was cv2.error)": (
-        lambda w, c, s: lambda: read_image(write(w / "big.png", PNG_65536())), ("big.png", "OpenCV refused")),
+        lambda w, c, s: lambda: read_image(write(w / "big.png", PNG_65536())),
+        ("big.png", "OpenCV refused"),
+    ),
     "PNG header claiming 65536 x 65536 as a mask (was cv2.error)": (
-        lambda w, c, s: lambda: read_mask(write(w / "big.png", PNG_65536())), ("big.png", "OpenCV refused")),
+        lambda w, c, s: lambda: read_mask(write(w / "big.png", PNG_65536())),
+        ("big.png", "OpenCV refused"),
+    ),
     "PNG header claiming 65536 x 65536 as a source mask (was cv2.error)": (
         lambda w, c, s: lambda: convert_mask(write(w / "big.png", PNG_65536()), w / "m.png", 10, 12),
-        ("big.png", "OpenCV refused")),
+        ("big.png", "OpenCV refused"),
+    ),
     "EXR dataWindow grown, chunks missing (was a 2817x2305 image of zeros, 99 MiB)": (
-        lambda w, c, s: lambda: read_image(_exr_claiming_more_pixels(w)), ("grown.exr", "missing or corrupted")),
+        lambda w, c, s: lambda: read_image(_exr_claiming_more_pixels(w)),
+        ("grown.exr", "missing or corrupted"),
+    ),
     "EXR attribute name with a non-UTF-8 byte (was UnicodeDecodeError)": (
-        lambda w, c, s: lambda: read_image(_exr_with_binary_attribute_name(w)), ("binary.exr", "cannot decode EXR")),
+        lambda w, c, s: lambda: read_image(_exr_with_binary_attribute_name(w)),
+        ("binary.exr", "cannot decode EXR"),
+    ),
     "mask of shape [0, 0, 0] (was ValueError: zero-size array, naming no file)": (
-        lambda w, c, s: lambda: decode_mask(np.zeros((0, 0, 0), np.uint8), "m.png"), ("m.png", "no pixels")),
+        lambda w, c, s: lambda: decode_mask(np.zeros((0, 0, 0), np.uint8), "m.png"),
+        ("m.png", "no pixels"),
+    ),
     "npz member needing zip version 10.9 (was NotImplementedError)": (
         lambda w, c, s: lambda: load_driving_motion(_npz_of_zip_version(w), rig_from_json(RIG_JSON)),
-        ("version.npz", "cannot read npz")),
+        ("version.npz", "cannot read npz"),
+    ),
     "npz member flagged encrypted (was RuntimeError; the same gap, not drawn)": (
         lambda w, c, s: lambda: load_driving_motion(_npz_encrypted(w), rig_from_json(RIG_JSON)),
-        ("encrypted.npz", "encrypted")),
+        ("encrypted.npz", "encrypted"),
+    ),
     "AMASS poses of 1e308 (was LinAlgError: SVD did not converge)": (
-        lambda w, c, s: lambda: load_driving_motion(write(w / "dance.npz", npz_bytes(
-            {**amass_arrays(), "poses": np.full((6, 165), 1e308)})), SMPLX_RIG()), ("dance.npz", "poses", "beyond")),
+        lambda w, c, s: (
+            lambda: load_driving_motion(
+                write(w / "dance.npz", npz_bytes({**amass_arrays(), "poses": np.full((6, 165), 1e308)})), SMPLX_RIG()
+            )
+        ),
+        ("dance.npz", "poses", "beyond"),
+    ),
     "AMASS poses of 4e38 (was a NaN root rotation)": (
-        lambda w, c, s: lambda: load_driving_motion(write(w / "dance.npz", npz_bytes(
-            {**amass_arrays(), "poses": np.full((6, 165), 4e38)})), SMPLX_RIG()), ("dance.npz", "poses", "beyond")),
+        lambda w, c, s: (
+            lambda: load_driving_motion(
+                write(w / "dance.npz", npz_bytes({**amass_arrays(), "poses": np.full((6, 165), 4e38)})), SMPLX_RIG()
+            )
+        ),
+        ("dance.npz", "poses", "beyond"),
+    ),
     "motion npz face of 1e308 (was inf after the float32 conversion)": (
-        lambda w, c, s: lambda: load_driving_motion(write(w / "walk.npz", npz_bytes(
-            {**motion_arrays(), "face": np.full((5, 2), 1e308)})), rig_from_json(RIG_JSON)),
-        ("walk.npz", "face", "float32")),
+        lambda w, c, s: (
+            lambda: load_driving_motion(
+                write(w / "walk.npz", npz_bytes({**motion_arrays(), "face": np.full((5, 2), 1e308)})),
+                rig_from_json(RIG_JSON),
+            )
+        ),
+        ("walk.npz", "face", "float32"),
+    ),
     "motion npz pose of 1e308 (was inf after the float32 conversion)": (
-        lambda w, c, s: lambda: load_driving_motion(write(w / "walk.npz", npz_bytes(
-            {**motion_arrays(), "pose": np.full((5, 3), 1e308)})), rig_from_json(RIG_JSON)),
-        ("walk.npz", "pose", "beyond")),
+        lambda w, c, s: (
+            lambda: load_driving_motion(
+                write(w / "walk.npz", npz_bytes({**motion_arrays(), "pose": np.full((5, 3), 1e308)})),
+                rig_from_json(RIG_JSON),
+            )
+        ),
+        ("walk.npz", "pose", "beyond"),
+    ),
     "rig.json group listing a list (was TypeError: unhashable type)": (
         lambda w, c, s: lambda: load_capture(_capture_with_rig_groups(w, c, {"torso_head": [[]]})),
-        ("rig.json", "groups.torso_head")),
+        ("rig.json", "groups.torso_head"),
+    ),
 }
 
 
@@ -1080,8 +1351,11 @@ FOUND: dict[str, tuple[Callable, tuple[str, ...]]] = {
 def test_crash_found_by_fuzzing_is_a_clear_error(case, tmp_path, capture, checkpoint_seed):
     make, expect = FOUND[case]
     read = make(tmp_path, capture, checkpoint_seed)
-    with mock.patch("gsavatar.runs.load.load_scene", lambda dataset: None), \
-            mock.patch("gsavatar.runs.load.build_net", _build_net_stand_in), pytest.raises(CLEAR_ERRORS) as e:
+    with (
+        mock.patch("gsavatar.runs.load.load_scene", lambda dataset: None),
+        mock.patch("gsavatar.runs.load.build_net", _build_net_stand_in),
+        pytest.raises(CLEAR_ERRORS) as e,
+    ):
         read()
     missing = [f for f in expect if f not in str(e.value)]
     assert not missing, f"message lacks {missing}: {e.value}"

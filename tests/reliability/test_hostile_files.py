@@ -32,8 +32,16 @@ from gsavatar.drive.cli import main as drive_main
 from gsavatar.prep.cli import main as prep_main
 from gsavatar.train.cli import main as train_main
 from gsavatar.utils.io import read_image, read_npz, write_image
-from reliability.helpers import (PREP_ARGS, Case, Env, case_registry, copy_capture, copy_dataset, subprocess_env,
-                                 tree_digest)
+from reliability.helpers import (
+    PREP_ARGS,
+    Case,
+    Env,
+    case_registry,
+    copy_capture,
+    copy_dataset,
+    subprocess_env,
+    tree_digest,
+)
 
 DRIVE_ARGS = ["--lpips", "off", "--image-scale", "0.25"]
 MAINS = {"avatar-prep": prep_main, "avatar-train": train_main, "avatar-drive": drive_main}
@@ -46,16 +54,22 @@ case = case_registry(CASES)
 # --------------------------------------------------------------------------- builders
 def bvh_text(frames: str = "2", frame_time: str = "0.0333333", rows: int = 2, hierarchy: str | None = None) -> str:
     """A one-joint BVH (6 channels) with the given ``Frames:``/``Frame Time:`` values and ``rows`` rows."""
-    hierarchy = hierarchy or ("ROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 6 Xposition Yposition Zposition Zrotation "
-                              "Yrotation Xrotation\n End Site\n {\n  OFFSET 0 1 0\n }\n}\n")
+    hierarchy = hierarchy or (
+        "ROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 6 Xposition Yposition Zposition Zrotation "
+        "Yrotation Xrotation\n End Site\n {\n  OFFSET 0 1 0\n }\n}\n"
+    )
     return f"HIERARCHY\n{hierarchy}MOTION\nFrames: {frames}\nFrame Time: {frame_time}\n" + "0 0 0 0 0 0\n" * rows
 
 
 def nested_hierarchy(depth: int) -> str:
     """``depth`` joints each inside the previous one (a recursive parser overflows the stack)."""
     opening = "".join(f"JOINT j{i}\n{{\n OFFSET 0 1 0\n CHANNELS 0\n" for i in range(depth))
-    return "ROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 6 Xposition Yposition Zposition Zrotation Yrotation Xrotation\n" \
-        + opening + "}\n" * depth + "}\n"
+    return (
+        "ROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 6 Xposition Yposition Zposition Zrotation Yrotation Xrotation\n"
+        + opening
+        + "}\n" * depth
+        + "}\n"
+    )
 
 
 def pose_dim(env: Env) -> int:
@@ -65,8 +79,13 @@ def pose_dim(env: Env) -> int:
 
 
 def motion_arrays(env: Env, frames: int = 3, **changes) -> dict[str, np.ndarray]:
-    return {"pose": np.zeros((frames, pose_dim(env)), np.float32), "root_rotation": np.zeros((frames, 3), np.float32),
-            "root_translation": np.zeros((frames, 3), np.float32), "fps": np.float32(15.0), **changes}
+    return {
+        "pose": np.zeros((frames, pose_dim(env)), np.float32),
+        "root_rotation": np.zeros((frames, 3), np.float32),
+        "root_translation": np.zeros((frames, 3), np.float32),
+        "fps": np.float32(15.0),
+        **changes,
+    }
 
 
 def npz(env: Env, name: str = "walk.npz", compressed: bool = False, **arrays) -> Path:
@@ -181,8 +200,13 @@ def _(env):  # 6 declared, 5 named: the parser takes 'End' (of End Site) for the
     return drive(env, bvh(env, bvh_text().replace(" Xrotation\n End Site", "\n End Site")))
 
 
-@case("BVH whose resampling makes too many frames", "avatar-drive", "walk.bvh", "MOTION",
-      f"more than the {MAX_RESAMPLED_FRAMES}")
+@case(
+    "BVH whose resampling makes too many frames",
+    "avatar-drive",
+    "walk.bvh",
+    "MOTION",
+    f"more than the {MAX_RESAMPLED_FRAMES}",
+)
 def _(env):  # 1 fps x 14000 frames -> 15 fps: 209986 output frames
     return drive(env, bvh(env, bvh_text(frames="14000", frame_time="1", rows=14000)))
 
@@ -213,8 +237,13 @@ def _(env):
     return drive(env, npz(env, **motion_arrays(env)), "--motion-fps", "1e-7")
 
 
-@case("npz motion whose resampling makes too many frames", "avatar-drive", "walk.npz", "fps",
-      f"more than the {MAX_RESAMPLED_FRAMES}")
+@case(
+    "npz motion whose resampling makes too many frames",
+    "avatar-drive",
+    "walk.npz",
+    "fps",
+    f"more than the {MAX_RESAMPLED_FRAMES}",
+)
 def _(env):  # 1 fps x 14000 frames -> 15 fps
     return drive(env, npz(env, **motion_arrays(env, frames=14000, fps=np.float32(1.0))))
 
@@ -264,20 +293,31 @@ def run_copy(env: Env, text: str | None = None, edit: Callable[[dict], object] |
 
 
 RUN_CONFIGS: dict[str, tuple[Callable[[Env], Path], tuple[str, ...]]] = {
-    "run config.json that is not JSON": (lambda e: run_copy(e, "{\"train\": [1, 2"), ("config.json", "invalid JSON")),
+    "run config.json that is not JSON": (lambda e: run_copy(e, '{"train": [1, 2'), ("config.json", "invalid JSON")),
     "run config.json that is a list": (lambda e: run_copy(e, "[]"), ("config.json", "train", "missing")),
     "run config.json with a string step count": (
-        lambda e: run_copy(e, edit=lambda o: o["train"].update(steps="many")), ("config.json", "train.steps", "'many'")),
+        lambda e: run_copy(e, edit=lambda o: o["train"].update(steps="many")),
+        ("config.json", "train.steps", "'many'"),
+    ),
     "run config.json with a boolean preset": (
-        lambda e: run_copy(e, edit=lambda o: o["train"].update(preset=True)), ("config.json", "train.preset", "True")),
+        lambda e: run_copy(e, edit=lambda o: o["train"].update(preset=True)),
+        ("config.json", "train.preset", "True"),
+    ),
     "run config.json without the dataset": (
-        lambda e: run_copy(e, edit=lambda o: o["train"].pop("dataset")), ("config.json", "train.dataset", "missing")),
+        lambda e: run_copy(e, edit=lambda o: o["train"].pop("dataset")),
+        ("config.json", "train.dataset", "missing"),
+    ),
     "run config.json with negative eval frames": (
-        lambda e: run_copy(e, edit=lambda o: o["train"].update(eval_frames=-3)), ("config.json", "eval_frames", "-3")),
+        lambda e: run_copy(e, edit=lambda o: o["train"].update(eval_frames=-3)),
+        ("config.json", "eval_frames", "-3"),
+    ),
     "run config.json with a duplicate key": (
-        lambda e: run_copy(e, '{"train": {}, "train": {}}'), ("config.json", "train", "key given twice")),
+        lambda e: run_copy(e, '{"train": {}, "train": {}}'),
+        ("config.json", "train", "key given twice"),
+    ),
 }
 for _kind, (_make, _expect) in RUN_CONFIGS.items():
+
     def _drive_setup(env, make=_make):
         return drive(env, env.capture, "--count", "2", run=make(env))
 
@@ -320,6 +360,7 @@ def _obj_case(kind: str, bad: str) -> None:
         n = first_line(env.capture / MESH, kind + " ")
         argv, protected = prep_all(env, lambda c: replace_line(c / MESH, n, bad))
         return argv, protected
+
     expect = ("mesh.obj", "line", f"{kind}:", "non-finite" if kind != "f" else "out of range")
     case(f"OBJ {kind} line {bad!r}", "avatar-prep", *expect)(setup)
 
@@ -441,7 +482,9 @@ def test_read_npz_never_decompresses_keys_it_was_not_asked_for(tmp_path):
         info = z.getinfo("junk.npy")
     data = bytearray(path.read_bytes())
     at = info.header_offset  # local header: 30 bytes, then the name and the extra field
-    start = at + 30 + int.from_bytes(data[at + 26 : at + 28], "little") + int.from_bytes(data[at + 28 : at + 30], "little")
+    start = (
+        at + 30 + int.from_bytes(data[at + 26 : at + 28], "little") + int.from_bytes(data[at + 28 : at + 30], "little")
+    )
     data[start + 16 : start + info.compress_size - 16] = os.urandom(info.compress_size - 32)
     path.write_bytes(bytes(data))
     assert sorted(read_npz(path, keys=("pose", "absent"))) == ["pose"]
@@ -463,9 +506,17 @@ def test_driving_motion_reads_only_its_arrays(tmp_path, tiny_capture):
     from gsavatar.drive.motion import load_driving_motion
 
     rig = load_capture(tiny_capture).rig
-    path = lying_header_npz(tmp_path / "walk.npz", "unused", (10**6, 10**6),
-                            {"pose": np.zeros((4, rig.pose_dim)), "root_rotation": np.zeros((4, 3)),
-                             "root_translation": np.zeros((4, 3)), "fps": np.float64(15.0)})
+    path = lying_header_npz(
+        tmp_path / "walk.npz",
+        "unused",
+        (10**6, 10**6),
+        {
+            "pose": np.zeros((4, rig.pose_dim)),
+            "root_rotation": np.zeros((4, 3)),
+            "root_translation": np.zeros((4, 3)),
+            "fps": np.float64(15.0),
+        },
+    )
     assert load_driving_motion(path, rig, 15.0).num_frames == 4
 
 

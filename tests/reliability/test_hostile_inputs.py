@@ -40,8 +40,9 @@ def env(tmp_path, tiny_capture, tiny_dataset, pose_only_run, drive_output) -> En
     return Env(tmp_path, tiny_capture, tiny_dataset, pose_only_run, drive_output)
 
 
-def check_refused(cli: str, argv: list[str], protected: list[Path], expect: tuple[str, ...], capsys, env: Env,
-                  code: int = 2) -> str:
+def check_refused(
+    cli: str, argv: list[str], protected: list[Path], expect: tuple[str, ...], capsys, env: Env, code: int = 2
+) -> str:
     before = tree_digest(*protected)
     capsys.readouterr()
     rc = run_cli(cli, argv)
@@ -52,7 +53,9 @@ def check_refused(cli: str, argv: list[str], protected: list[Path], expect: tupl
     assert not missing, f"message lacks {missing}:\n{err}"
     after = tree_digest(*protected)
     assert not [p for p, d in before.items() if after.get(p) != d], "pre-existing files changed"
-    assert not (env.tmp / OUTSIDE).exists(), f"written outside the output folder: {list((env.tmp / OUTSIDE).rglob('*'))}"
+    assert not (env.tmp / OUTSIDE).exists(), (
+        f"written outside the output folder: {list((env.tmp / OUTSIDE).rglob('*'))}"
+    )
     return err
 
 
@@ -66,8 +69,10 @@ def prep(env: Env, mutate: Callable[[Path], object]) -> tuple[list[str], list[Pa
 
 def rename_camera(cap: Path, old: str, new: str) -> None:
     edit_json(cap / "calibration.json", lambda c: c.__setitem__(new, c.pop(old)))
-    edit_json(cap / "splits.json", lambda s: [sp.__setitem__("cameras", [new if x == old else x for x in sp["cameras"]])
-                                              for sp in s.values()])
+    edit_json(
+        cap / "splits.json",
+        lambda s: [sp.__setitem__("cameras", [new if x == old else x for x in sp["cameras"]]) for sp in s.values()],
+    )
 
 
 # --------------------------------------------------------------------------- security: names become paths
@@ -82,13 +87,28 @@ def test_camera_name_climbing_out_is_refused_by_drive(env, capsys):
     cap = copy_capture(env.capture, env.tmp / "capture")
     rename_camera(cap, "full01", "../../" + OUTSIDE + "/PWNED_cam")
     out = env.tmp / "drive"
-    argv = ["--run", str(env.run), "--motion", str(cap), "--out", str(out), "--lpips", "off", "--image-scale", "0.25",
-            "--count", "2"]
-    check_refused("avatar-drive", argv, [cap, env.run], ("calibration.json", "PWNED_cam", "not a plain name"), capsys, env)
+    argv = [
+        "--run",
+        str(env.run),
+        "--motion",
+        str(cap),
+        "--out",
+        str(out),
+        "--lpips",
+        "off",
+        "--image-scale",
+        "0.25",
+        "--count",
+        "2",
+    ]
+    check_refused(
+        "avatar-drive", argv, [cap, env.run], ("calibration.json", "PWNED_cam", "not a plain name"), capsys, env
+    )
 
 
 def test_parameter_name_climbing_out_is_refused(env, capsys):
     """localize used to write influence_{param}.png outside the dataset."""
+
     def mutate(cap: Path) -> None:
         def ren(r):
             old = r["pose_params"][3]["name"]
@@ -96,23 +116,44 @@ def test_parameter_name_climbing_out_is_refused(env, capsys):
             r["pose_params"][3]["name"] = new
             for g in r["groups"].values():
                 g[:] = [new if n == old else n for n in g]
+
         edit_json(cap / "template/rig.json", ren)
+
     argv, protected = prep(env, mutate)
     check_refused("avatar-prep", argv, protected, ("rig.json", "pose_params[3].name", "not a plain name"), capsys, env)
 
 
 def test_joint_and_split_names_are_checked(env, capsys):
-    argv, protected = prep(env, lambda c: edit_json(c / "template/rig.json",
-                                                    lambda r: r["joints"][-1].__setitem__("name", "a\\b/..")))
+    argv, protected = prep(
+        env, lambda c: edit_json(c / "template/rig.json", lambda r: r["joints"][-1].__setitem__("name", "a\\b/.."))
+    )
     check_refused("avatar-prep", argv, protected, ("rig.json", "joints[", ".name", "not a plain name"), capsys, env)
     shutil.rmtree(env.tmp / "capture"), shutil.rmtree(env.tmp / "dataset")
-    argv, protected = prep(env, lambda c: edit_json(c / "splits.json", lambda s: s.__setitem__("../test", s.pop("test"))))
+    argv, protected = prep(
+        env, lambda c: edit_json(c / "splits.json", lambda s: s.__setitem__("../test", s.pop("test")))
+    )
     check_refused("avatar-prep", argv, protected, ("splits.json", "../test", "split name"), capsys, env)
 
 
-@pytest.mark.parametrize("name,ok", [("full00", True), ("Neck.ry", True), ("mixamorig:Hips", True), ("l_hand+1", True),
-                                     ("..", False), (".hidden", False), ("-rf", False), ("a/b", False), ("a\\b", False),
-                                     ("", False), ("x" * 129, False), ("nul\0", False), ("sp ace", False), (3, False)])
+@pytest.mark.parametrize(
+    "name,ok",
+    [
+        ("full00", True),
+        ("Neck.ry", True),
+        ("mixamorig:Hips", True),
+        ("l_hand+1", True),
+        ("..", False),
+        (".hidden", False),
+        ("-rf", False),
+        ("a/b", False),
+        ("a\\b", False),
+        ("", False),
+        ("x" * 129, False),
+        ("nul\0", False),
+        ("sp ace", False),
+        (3, False),
+    ],
+)
 def test_check_name(name, ok):
     if ok:
         assert check_name(name, "f.json", "fld") == name
@@ -175,14 +216,27 @@ def test_red_masks_prepare_the_same_textures(env, capsys):
     assert np.array_equal(a, b)
 
 
-@pytest.mark.parametrize("what,mutate,expect", [
-    ("colour photo as mask", lambda c: _recode_masks(c, lambda m: np.random.default_rng(0).integers(0, 255, (*m.shape, 3), np.uint8)),
-     ("masks/", "colour image, not a mask")),
-    ("empty masks", lambda c: _recode_masks(c, lambda m: np.zeros_like(m)), ("masks", "empty or all foreground")),
-    ("all-foreground masks", lambda c: _recode_masks(c, lambda m: np.full_like(m, 255)), ("masks", "empty or all foreground")),
-    ("green-screen colours as mask", lambda c: _recode_masks(c, lambda m: np.dstack([m, np.maximum(m, 255 - m), m])),
-     ("masks/", "colour image, not a mask")),
-])
+@pytest.mark.parametrize(
+    "what,mutate,expect",
+    [
+        (
+            "colour photo as mask",
+            lambda c: _recode_masks(c, lambda m: np.random.default_rng(0).integers(0, 255, (*m.shape, 3), np.uint8)),
+            ("masks/", "colour image, not a mask"),
+        ),
+        ("empty masks", lambda c: _recode_masks(c, lambda m: np.zeros_like(m)), ("masks", "empty or all foreground")),
+        (
+            "all-foreground masks",
+            lambda c: _recode_masks(c, lambda m: np.full_like(m, 255)),
+            ("masks", "empty or all foreground"),
+        ),
+        (
+            "green-screen colours as mask",
+            lambda c: _recode_masks(c, lambda m: np.dstack([m, np.maximum(m, 255 - m), m])),
+            ("masks/", "colour image, not a mask"),
+        ),
+    ],
+)
 def test_masks_that_would_empty_the_dataset_are_refused(what, mutate, expect, env, capsys):
     argv, protected = prep(env, mutate)
     check_refused("avatar-prep", argv, protected, expect, capsys, env)
@@ -208,32 +262,75 @@ def _cal(fn):
 STRICT = [
     ("duplicate key", _dup_key, ("calibration.json", "full00", "key given twice")),
     ("NaN literal", lambda c: _raw_edit(c / "capture.json", '"fps": ', '"fps": NaN, "x": '), ("capture.json", "NaN")),
-    ("boolean fps", lambda c: edit_json(c / "capture.json", lambda o: o.__setitem__("fps", True)), ("capture.json", "fps")),
-    ("boolean num_frames", lambda c: edit_json(c / "capture.json", lambda o: o.__setitem__("num_frames", True)),
-     ("capture.json", "num_frames")),
+    (
+        "boolean fps",
+        lambda c: edit_json(c / "capture.json", lambda o: o.__setitem__("fps", True)),
+        ("capture.json", "fps"),
+    ),
+    (
+        "boolean num_frames",
+        lambda c: edit_json(c / "capture.json", lambda o: o.__setitem__("num_frames", True)),
+        ("capture.json", "num_frames"),
+    ),
     ("boolean image size", _cal(lambda o: o["full00"].__setitem__("imgSize", [True, 128])), ("full00.imgSize",)),
-    ("boolean frame index", lambda c: edit_json(c / "splits.json", lambda s: s["train"]["frames"].__setitem__(0, False)),
-     ("splits.json", "train.frames", "not booleans")),
+    (
+        "boolean frame index",
+        lambda c: edit_json(c / "splits.json", lambda s: s["train"]["frames"].__setitem__(0, False)),
+        ("splits.json", "train.frames", "not booleans"),
+    ),
     ("boolean in K", _cal(lambda o: o["full00"]["K"][2].__setitem__(2, True)), ("calibration.json", "full00.K")),
-    ("focal length 1e-300", _cal(lambda o: (o["full00"]["K"][0].__setitem__(0, 1e-300))), ("full00.K", "fx", "implausible")),
-    ("focal length 1e12", _cal(lambda o: (o["full00"]["K"][1].__setitem__(1, 1e12))), ("full00.K", "fy", "implausible")),
-    ("principal point far outside", _cal(lambda o: o["full00"]["K"][0].__setitem__(2, 1e6)), ("full00.K", "principal point")),
-    ("distortion 1e30", _cal(lambda o: o["full00"].__setitem__("distCoeff", [1e30, 0, 0, 0, 0])),
-     ("full00.distCoeff", "implausible")),
+    (
+        "focal length 1e-300",
+        _cal(lambda o: o["full00"]["K"][0].__setitem__(0, 1e-300)),
+        ("full00.K", "fx", "implausible"),
+    ),
+    ("focal length 1e12", _cal(lambda o: o["full00"]["K"][1].__setitem__(1, 1e12)), ("full00.K", "fy", "implausible")),
+    (
+        "principal point far outside",
+        _cal(lambda o: o["full00"]["K"][0].__setitem__(2, 1e6)),
+        ("full00.K", "principal point"),
+    ),
+    (
+        "distortion 1e30",
+        _cal(lambda o: o["full00"].__setitem__("distCoeff", [1e30, 0, 0, 0, 0])),
+        ("full00.distCoeff", "implausible"),
+    ),
     ("translation in millimetres", _cal(lambda o: o["full00"].__setitem__("T", [0, 0, 3e4])), ("full00.T", "metres")),
-    ("camera in train and test", lambda c: edit_json(c / "splits.json", lambda s: s["test"]["cameras"].append("full00")),
-     ("splits.json", "test.cameras", "full00", "also in train")),
-    ("frame in train and test", lambda c: edit_json(c / "splits.json", lambda s: s["test"]["frames"].append(0)),
-     ("splits.json", "test.frames", "also in train")),
-    ("frame listed twice", lambda c: edit_json(c / "splits.json", lambda s: s["train"]["frames"].append(s["train"]["frames"][0])),
-     ("splits.json", "train.frames", "twice")),
-    ("num_frames disagrees with motion", lambda c: edit_json(c / "capture.json", lambda o: o.__setitem__("num_frames", o["num_frames"] + 5)),
-     ("capture.json", "num_frames", "motion.npz")),
-    ("deeply nested JSON", lambda c: (c / "splits.json").write_text("[" * 100000 + "]" * 100000), ("splits.json", "nested")),
-    ("rig parent not a name", lambda c: edit_json(c / "template/rig.json", lambda r: r["joints"][1].__setitem__("parent", [1])),
-     ("rig.json", "joints[1].parent")),
-    ("rig head of booleans", lambda c: edit_json(c / "template/rig.json", lambda r: r["joints"][1].__setitem__("head", [True, 0, 0])),
-     ("rig.json", "joints[1].head")),
+    (
+        "camera in train and test",
+        lambda c: edit_json(c / "splits.json", lambda s: s["test"]["cameras"].append("full00")),
+        ("splits.json", "test.cameras", "full00", "also in train"),
+    ),
+    (
+        "frame in train and test",
+        lambda c: edit_json(c / "splits.json", lambda s: s["test"]["frames"].append(0)),
+        ("splits.json", "test.frames", "also in train"),
+    ),
+    (
+        "frame listed twice",
+        lambda c: edit_json(c / "splits.json", lambda s: s["train"]["frames"].append(s["train"]["frames"][0])),
+        ("splits.json", "train.frames", "twice"),
+    ),
+    (
+        "num_frames disagrees with motion",
+        lambda c: edit_json(c / "capture.json", lambda o: o.__setitem__("num_frames", o["num_frames"] + 5)),
+        ("capture.json", "num_frames", "motion.npz"),
+    ),
+    (
+        "deeply nested JSON",
+        lambda c: (c / "splits.json").write_text("[" * 100000 + "]" * 100000),
+        ("splits.json", "nested"),
+    ),
+    (
+        "rig parent not a name",
+        lambda c: edit_json(c / "template/rig.json", lambda r: r["joints"][1].__setitem__("parent", [1])),
+        ("rig.json", "joints[1].parent"),
+    ),
+    (
+        "rig head of booleans",
+        lambda c: edit_json(c / "template/rig.json", lambda r: r["joints"][1].__setitem__("head", [True, 0, 0])),
+        ("rig.json", "joints[1].head"),
+    ),
 ]
 
 
@@ -255,8 +352,9 @@ def test_disk_full_during_prep_names_the_file_and_keeps_the_dataset(env, capsys,
 
     monkeypatch.setattr(io_mod.np, "savez", full)
     argv, protected = prep(env, lambda c: None)
-    err = check_refused("avatar-prep", argv, protected, ("no space left on", "shard-00000.npz", "intact"), capsys, env,
-                        code=1)
+    err = check_refused(
+        "avatar-prep", argv, protected, ("no space left on", "shard-00000.npz", "intact"), capsys, env, code=1
+    )
     assert "re-run" in err
     monkeypatch.setattr(io_mod.np, "savez", real)
     assert run_cli("avatar-prep", argv) == 0  # the same command resumes once there is space
@@ -268,7 +366,17 @@ def test_file_size_limit_at_checkpoint_time_is_reported_and_resumable(env):
     import resource
 
     run = env.tmp / "run"
-    cmd = [sys.executable, "-m", "gsavatar.train.cli", "avatar", "--dataset", str(env.dataset), "--out", str(run), *TRAIN_ARGS]
+    cmd = [
+        sys.executable,
+        "-m",
+        "gsavatar.train.cli",
+        "avatar",
+        "--dataset",
+        str(env.dataset),
+        "--out",
+        str(run),
+        *TRAIN_ARGS,
+    ]
     first = subprocess.run(cmd, capture_output=True, text=True, env=subprocess_env(), timeout=600)
     assert first.returncode == 0, first.stderr
     ckpt = run / "checkpoints/latest.pt"
@@ -290,14 +398,41 @@ def test_file_size_limit_at_checkpoint_time_is_reported_and_resumable(env):
 
 def test_ctrl_c_during_training_exits_130_and_says_how_to_resume(env):
     run = env.tmp / "run"
-    cmd = [sys.executable, "-m", "gsavatar.train.cli", "avatar", "--dataset", str(env.dataset), "--out", str(run),
-           "--preset", "tiny", "--lpips", "off", "--image-scale", "0.5", "--log-every", "1", "--no-evaluate",
-           "--deterministic", "--steps", "100000", "--checkpoint-every", "1"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "gsavatar.train.cli",
+        "avatar",
+        "--dataset",
+        str(env.dataset),
+        "--out",
+        str(run),
+        "--preset",
+        "tiny",
+        "--lpips",
+        "off",
+        "--image-scale",
+        "0.5",
+        "--log-every",
+        "1",
+        "--no-evaluate",
+        "--deterministic",
+        "--steps",
+        "100000",
+        "--checkpoint-every",
+        "1",
+    ]
     # A test runner started in the background of a non-interactive shell (nohup ... &) ignores SIGINT, and
     # children inherit the ignore (Python then installs no handler): give the child the default disposition,
     # as a terminal's foreground process has.
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env(),
-                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    p = subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=subprocess_env(),
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     deadline = time.time() + 300
     while not (run / "checkpoints/latest.pt").exists() and time.time() < deadline and p.poll() is None:
         time.sleep(0.2)
@@ -306,9 +441,10 @@ def test_ctrl_c_during_training_exits_130_and_says_how_to_resume(env):
     assert p.returncode == 130, err
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
     assert "interrupted" in err and "resume" in err, err
-    r = subprocess.run([*cmd, "--max-steps-this-run", "1"], capture_output=True, text=True, env=subprocess_env(), timeout=600)
+    r = subprocess.run(
+        [*cmd, "--max-steps-this-run", "1"], capture_output=True, text=True, env=subprocess_env(), timeout=600
+    )
     assert r.returncode == 0, r.stderr
-
 
 
 # --------------------------------------------------------------------------- EXIF orientation
@@ -325,11 +461,15 @@ def _write_jpeg(path: Path, rgb_u8: np.ndarray, orientation: int) -> None:
 def test_exif_orientation_of_jpeg_images_is_applied(env, capsys):
     """A camera whose JPEGs are stored sideways with EXIF orientation 6 (as phones do) gives the textures of
     the same camera stored upright: the orientation is applied, and the size check uses the upright size."""
+
     def to_jpeg(cap: Path, rotated: bool) -> None:
         for p in sorted((cap / "images/full00").glob("*.png")):
             rgb = cv2.imread(str(p))[..., ::-1]
-            _write_jpeg(p.with_suffix(".jpg"), np.ascontiguousarray(rgb if rotated is False else np.rot90(rgb)),
-                        6 if rotated else 1)
+            _write_jpeg(
+                p.with_suffix(".jpg"),
+                np.ascontiguousarray(rgb if rotated is False else np.rot90(rgb)),
+                6 if rotated else 1,
+            )
             p.unlink()
 
     textures = {}
@@ -338,7 +478,9 @@ def test_exif_orientation_of_jpeg_images_is_applied(env, capsys):
         cap = copy_capture(env.capture, env.tmp / f"capture_{name}")
         to_jpeg(cap, rotated)
         ds = copy_dataset(env.dataset, env.tmp / f"dataset_{name}", capture=cap, drop=("project-uv",))
-        assert run_cli("avatar-prep", ["all", "--capture", str(cap), "--out", str(ds), *PREP_ARGS]) == 0, capsys.readouterr().err
+        assert run_cli("avatar-prep", ["all", "--capture", str(cap), "--out", str(ds), *PREP_ARGS]) == 0, (
+            capsys.readouterr().err
+        )
         textures[name] = np.load(ds / "project_uv/shard-00000.npz")["texture"].astype(np.float32)
     err = {k: float(np.abs(textures[k] - textures["upright"]).mean()) for k in ("rot", "ignored")}
     assert err["rot"] < 0.1 * err["ignored"], err  # JPEG blocks differ once rotated: equal up to compression

@@ -29,8 +29,20 @@ from gsavatar.utils.io import read_image, sha256_file, write_image
 from gsavatar.utils.outdir import MARKER
 from reliability.helpers import PREP_ARGS, copy_capture, copy_dataset, edit_json, edit_npz, tree_digest
 
-TRAIN_ARGS = ["--preset", "tiny", "--lpips", "off", "--image-scale", "0.5", "--log-every", "1", "--no-evaluate",
-              "--deterministic", "--checkpoint-every", "1"]
+TRAIN_ARGS = [
+    "--preset",
+    "tiny",
+    "--lpips",
+    "off",
+    "--image-scale",
+    "0.5",
+    "--log-every",
+    "1",
+    "--no-evaluate",
+    "--deterministic",
+    "--checkpoint-every",
+    "1",
+]
 DRIVE_ARGS = ["--lpips", "off", "--image-scale", "0.25", "--count", "2"]
 STAGES = ("pose-template", "uv-atlas", "project-uv", "fit-pca", "sample-points", "localize")
 IMG = "images/full00/00000003.png"
@@ -154,6 +166,7 @@ def strip_fingerprints(ds: Path) -> None:
         for rec in o["stages"].values():
             rec.pop("inputs")
             rec["files"] = {rel: sha256_file(ds / rel) for rel in rec["files"]}  # the manifests' new bytes
+
     edit_json(ds / "dataset.json", strip)
 
 
@@ -214,27 +227,46 @@ def user_folder(root: Path) -> Path:
     return root
 
 
-def refusal_argv(cli: str, out: Path, tiny_capture: Path, tiny_dataset: Path, run: Path) -> tuple[object, list[str], str]:
+def refusal_argv(
+    cli: str, out: Path, tiny_capture: Path, tiny_dataset: Path, run: Path
+) -> tuple[object, list[str], str]:
     """(main, argv, force flag) of each command that takes --out DIR."""
     return {
-        "avatar-prep all": (prep_main, ["all", "--capture", str(tiny_capture), "--out", str(out), *PREP_ARGS], "--force-out"),
+        "avatar-prep all": (
+            prep_main,
+            ["all", "--capture", str(tiny_capture), "--out", str(out), *PREP_ARGS],
+            "--force-out",
+        ),
         "avatar-prep synth": (prep_main, ["synth", "--out", str(out)], "--force-out"),
-        "avatar-train avatar": (train_main, ["avatar", "--dataset", str(tiny_dataset), "--out", str(out), *TRAIN_ARGS,
-                                             "--steps", "1"], "--force"),
+        "avatar-train avatar": (
+            train_main,
+            ["avatar", "--dataset", str(tiny_dataset), "--out", str(out), *TRAIN_ARGS, "--steps", "1"],
+            "--force",
+        ),
         "avatar-train predictor": (train_main, ["predictor", "--run", str(run), "--out", str(out)], "--force"),
-        "avatar-drive": (drive_main, ["--run", str(run), "--motion", str(tiny_capture), "--out", str(out), *DRIVE_ARGS],
-                         "--force"),
+        "avatar-drive": (
+            drive_main,
+            ["--run", str(run), "--motion", str(tiny_capture), "--out", str(out), *DRIVE_ARGS],
+            "--force",
+        ),
         "prep.report": (report_main, [str(tiny_dataset), "--out", str(out)], "--force"),
     }[cli]
 
 
-CLIS = ["avatar-prep all", "avatar-prep synth", "avatar-train avatar", "avatar-train predictor", "avatar-drive",
-        "prep.report"]
+CLIS = [
+    "avatar-prep all",
+    "avatar-prep synth",
+    "avatar-train avatar",
+    "avatar-train predictor",
+    "avatar-drive",
+    "prep.report",
+]
 
 
 @pytest.mark.parametrize("cli", CLIS)
-def test_nonempty_foreign_out_is_refused_and_left_untouched(cli, tmp_path, tiny_capture, tiny_dataset, pose_only_run,
-                                                            capsys):
+def test_nonempty_foreign_out_is_refused_and_left_untouched(
+    cli, tmp_path, tiny_capture, tiny_dataset, pose_only_run, capsys
+):
     out = user_folder(tmp_path / "mine")
     main, argv, flag = refusal_argv(cli, out, tiny_capture, tiny_dataset, pose_only_run)
     before = tree_digest(tmp_path, pose_only_run)
@@ -258,12 +290,26 @@ def test_prep_force_out_writes_beside_the_users_files_then_resumes(tmp_path, tin
     assert tree_digest(tiny_capture) == outside
 
 
-def test_train_and_drive_force_write_into_a_foreign_folder_then_resume(tmp_path, tiny_dataset, pose_only_run, tiny_capture):
+def test_train_and_drive_force_write_into_a_foreign_folder_then_resume(
+    tmp_path, tiny_dataset, pose_only_run, tiny_capture
+):
     run = user_folder(tmp_path / "run")
     notes = (run / "notes.txt").read_bytes()
     protected = tree_digest(tiny_dataset, pose_only_run, tiny_capture)
-    argv = ["avatar", "--dataset", str(tiny_dataset), "--out", str(run), *TRAIN_ARGS, "--steps", "2",
-            "--max-steps-this-run", "1", "--variant", "mmlps_dagger"]
+    argv = [
+        "avatar",
+        "--dataset",
+        str(tiny_dataset),
+        "--out",
+        str(run),
+        *TRAIN_ARGS,
+        "--steps",
+        "2",
+        "--max-steps-this-run",
+        "1",
+        "--variant",
+        "mmlps_dagger",
+    ]
     assert train_main([*argv, "--force"]) == 0
     assert (run / "checkpoints" / "latest.pt").exists() and (run / "notes.txt").read_bytes() == notes
     assert train_main(argv) == 0  # resumes into its own run without --force
@@ -277,10 +323,14 @@ def test_train_and_drive_force_write_into_a_foreign_folder_then_resume(tmp_path,
 
 
 @pytest.mark.parametrize("cli", ["avatar-train avatar", "avatar-drive", "avatar-prep all"])
-def test_out_holding_another_kind_of_our_outputs_is_refused_even_with_force(cli, tmp_path, tiny_capture, tiny_dataset,
-                                                                          pose_only_run, capsys):
-    other = {"avatar-train avatar": ("dataset", tiny_dataset), "avatar-drive": ("run", pose_only_run),
-             "avatar-prep all": ("run", pose_only_run)}[cli]
+def test_out_holding_another_kind_of_our_outputs_is_refused_even_with_force(
+    cli, tmp_path, tiny_capture, tiny_dataset, pose_only_run, capsys
+):
+    other = {
+        "avatar-train avatar": ("dataset", tiny_dataset),
+        "avatar-drive": ("run", pose_only_run),
+        "avatar-prep all": ("run", pose_only_run),
+    }[cli]
     out = tmp_path / "other"
     shutil.copytree(other[1], out)
     main, argv, flag = refusal_argv(cli, out, tiny_capture, tiny_dataset, pose_only_run)
@@ -290,8 +340,9 @@ def test_out_holding_another_kind_of_our_outputs_is_refused_even_with_force(cli,
     assert tree_digest(tmp_path) == before
 
 
-def test_outputs_of_older_versions_without_marker_are_still_ours(tmp_path, tiny_capture, tiny_dataset, drive_output,
-                                                                pose_only_run, capsys):
+def test_outputs_of_older_versions_without_marker_are_still_ours(
+    tmp_path, tiny_capture, tiny_dataset, drive_output, pose_only_run, capsys
+):
     ds = copy_dataset(tiny_dataset, tmp_path / "dataset")
     (ds / MARKER).unlink()
     capsys.readouterr()

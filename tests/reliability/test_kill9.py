@@ -30,9 +30,22 @@ from reliability.helpers import copy_dataset, flip_byte, npz_arrays, subprocess_
 
 PREP = ["--workers", "1", "--shard-size", "3", "--project.tex-size", "128", "--no-figures"]
 """3 frames per shard: 4 shards per per-frame stage, so there are many commit points to hit."""
-TRAIN = ["--preset", "tiny", "--lpips", "off", "--image-scale", "0.5", "--log-every", "1", "--no-evaluate",
-         "--deterministic", "--steps", "6", "--checkpoint-every", "2"]
-
+TRAIN = [
+    "--preset",
+    "tiny",
+    "--lpips",
+    "off",
+    "--image-scale",
+    "0.5",
+    "--log-every",
+    "1",
+    "--no-evaluate",
+    "--deterministic",
+    "--steps",
+    "6",
+    "--checkpoint-every",
+    "2",
+]
 
 
 def kill_group(p: subprocess.Popen) -> None:
@@ -42,6 +55,7 @@ def kill_group(p: subprocess.Popen) -> None:
     except ProcessLookupError:
         pass
     p.wait()
+
 
 def prep_argv(capture: Path, out: Path, *extra: str) -> list[str]:
     return ["all", "--capture", str(capture), "--out", str(out), *PREP, *extra]
@@ -86,16 +100,22 @@ def assert_same_dataset(ref: Path, got: Path) -> None:
             x, y = npz_arrays(ref / rel), npz_arrays(got / rel)
             assert sorted(x) == sorted(y), rel
             for k in x:
-                assert x[k].dtype == y[k].dtype and np.array_equal(x[k], y[k], equal_nan=x[k].dtype.kind == "f"), f"{rel}:{k}"
+                assert x[k].dtype == y[k].dtype and np.array_equal(x[k], y[k], equal_nan=x[k].dtype.kind == "f"), (
+                    f"{rel}:{k}"
+                )
         elif rel.endswith(".json") and rel != "dataset.json":
             assert strip_sha(json.loads((ref / rel).read_text())) == strip_sha(json.loads((got / rel).read_text())), rel
     assert verify_dataset(got) == []
 
 
 def start_prep(capture: Path, out: Path, *extra: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "gsavatar.prep.cli", *prep_argv(capture, out, *extra)],
-                            env=subprocess_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            start_new_session=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "gsavatar.prep.cli", *prep_argv(capture, out, *extra)],
+        env=subprocess_env(),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+    )
 
 
 def kill_when(p: subprocess.Popen, ds: Path, point: str, delay: float, timeout: float = 240.0) -> None:
@@ -104,7 +124,9 @@ def kill_when(p: subprocess.Popen, ds: Path, point: str, delay: float, timeout: 
     deadline = time.monotonic() + timeout
     while not path.exists():
         if p.poll() is not None:
-            pytest.fail(f"prep exited ({p.returncode}) before {path.name} appeared:\n{p.stderr.read().decode()[-2000:]}")
+            pytest.fail(
+                f"prep exited ({p.returncode}) before {path.name} appeared:\n{p.stderr.read().decode()[-2000:]}"
+            )
         if time.monotonic() > deadline:
             break
         time.sleep(0.002)
@@ -192,14 +214,21 @@ def train_reference(tiny_dataset, tmp_path_factory) -> Path:
 
 
 @pytest.mark.parametrize("seed", [0, 1])
-def test_training_killed_at_a_random_step_then_resumed_equals_uninterrupted(seed, train_reference, tiny_dataset, tmp_path):
+def test_training_killed_at_a_random_step_then_resumed_equals_uninterrupted(
+    seed, train_reference, tiny_dataset, tmp_path
+):
     """Seeded random step (1-4 of 6) and delay (0-0.3 s, so sometimes mid-step or mid-checkpoint-write)."""
     rng = random.Random(seed)
     step, delay = rng.randint(1, 4), rng.uniform(0.0, 0.3)
     run = tmp_path / "run"
     argv = ["avatar", "--dataset", str(tiny_dataset), "--out", str(run), *TRAIN]
-    p = subprocess.Popen([sys.executable, "-m", "gsavatar.train.cli", *argv], env=subprocess_env(),
-                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    p = subprocess.Popen(
+        [sys.executable, "-m", "gsavatar.train.cli", *argv],
+        env=subprocess_env(),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     deadline = time.monotonic() + 240
     while p.poll() is None and time.monotonic() < deadline:
         if (run / "metrics.jsonl").exists() and max(curve(run), default=0) >= step:
@@ -208,7 +237,9 @@ def test_training_killed_at_a_random_step_then_resumed_equals_uninterrupted(seed
     time.sleep(delay)
     kill_group(p)
     assert p.returncode == -signal.SIGKILL, f"training finished (exit {p.returncode}) before the kill at step {step}"
-    print(f"killed {delay * 1e3:.0f} ms after step {step} was logged; checkpoint: {(run / 'checkpoints/latest.pt').exists()}")
+    print(
+        f"killed {delay * 1e3:.0f} ms after step {step} was logged; checkpoint: {(run / 'checkpoints/latest.pt').exists()}"
+    )
     assert train_main(argv) == 0  # resumes from the last complete checkpoint (or from scratch)
     assert curve(run) == curve(train_reference)
     a, b = params(train_reference), params(run)

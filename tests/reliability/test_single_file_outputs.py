@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 from gsavatar.utils.errors import SchemaError
-from gsavatar.utils.outdir import (PLY_COMMENT, claim_output_file, file_record_path, is_our_file,
-                                   record_output_file)
+from gsavatar.utils.outdir import PLY_COMMENT, claim_output_file, file_record_path, is_our_file, record_output_file
 from tests.reliability.test_hostile_outputs import assert_refused, run_cli
 
 
@@ -22,8 +21,9 @@ def test_existing_foreign_file_is_refused_and_force_allows_it(tmp_path):
     assert notes.read_text() == "my notes\n"  # claiming writes nothing
 
 
-@pytest.mark.parametrize("kind,name", [("ply", "thesis.txt"), ("video", "clip.avi"), ("figure", "fig.jpg"),
-                                       ("video", "noext")])
+@pytest.mark.parametrize(
+    "kind,name", [("ply", "thesis.txt"), ("video", "clip.avi"), ("figure", "fig.jpg"), ("video", "noext")]
+)
 def test_extension_must_fit_the_kind(tmp_path, kind, name):
     with pytest.raises(SchemaError, match="must end in"):
         claim_output_file(tmp_path / name, kind)
@@ -50,8 +50,14 @@ def test_our_outputs_are_recognised_by_content_not_name(tmp_path):
 
     ply = tmp_path / "a.ply"
     n = 3
-    write_ply(ply, np.zeros((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)), np.full((n, 3), 0.01), np.full(n, 0.5),
-              np.zeros((n, 1, 3)))
+    write_ply(
+        ply,
+        np.zeros((n, 3)),
+        np.tile([1.0, 0, 0, 0], (n, 1)),
+        np.full((n, 3), 0.01),
+        np.full(n, 0.5),
+        np.zeros((n, 1, 3)),
+    )
     assert PLY_COMMENT.encode() in ply.read_bytes()[:512]
     assert is_our_file(ply, "ply") and read_ply(ply).means.shape == (n, 3)  # readers skip the comment
     claim_output_file(ply, "ply")  # a re-run replaces its own file

@@ -16,7 +16,9 @@ def splats(n, width, height, n_cams, seed, dtype=torch.float64, opaque=False):
     g = torch.Generator().manual_seed(seed)
     means2d = (torch.rand(n, 2, generator=g, dtype=dtype) * 1.2 - 0.1) * torch.tensor([width, height], dtype=dtype)
     L = torch.randn(n, 2, 2, generator=g, dtype=dtype)
-    cov = (L @ L.transpose(1, 2) + 0.3 * torch.eye(2, dtype=dtype)) * (1 + 6 * torch.rand(n, 1, 1, generator=g, dtype=dtype))
+    cov = (L @ L.transpose(1, 2) + 0.3 * torch.eye(2, dtype=dtype)) * (
+        1 + 6 * torch.rand(n, 1, 1, generator=g, dtype=dtype)
+    )
     inv = torch.linalg.inv(cov)
     conics = torch.stack([inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]], 1)
     opac = (0.9 + 0.1 * torch.rand(n, generator=g, dtype=dtype)) if opaque else torch.rand(n, generator=g, dtype=dtype)
@@ -41,8 +43,9 @@ def test_numba_equals_dense_values_and_grads(tile_size, opaque):
         stats: list = []
         color, alpha = composite(*leaves, n_cams, width, height, tile_size=tile_size, method=method, stats_out=stats)
         g = torch.Generator().manual_seed(3)
-        loss = (color * torch.randn(color.shape, generator=g, dtype=color.dtype)).sum() + \
-            (alpha * torch.randn(alpha.shape, generator=g, dtype=alpha.dtype)).sum()
+        loss = (color * torch.randn(color.shape, generator=g, dtype=color.dtype)).sum() + (
+            alpha * torch.randn(alpha.shape, generator=g, dtype=alpha.dtype)
+        ).sum()
         results[method] = (color, alpha, torch.autograd.grad(loss, leaves[:4]), stats[0])
     (c0, a0, g0, s0), (c1, a1, g1, s1) = results["dense"], results["numba"]
     torch.testing.assert_close(c1, c0, rtol=1e-10, atol=1e-12)

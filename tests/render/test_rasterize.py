@@ -44,9 +44,15 @@ def reference_project(means, quats, scales, viewmats, Ks, width, height, eps2d=0
     w, x, y, z = q.unbind(-1)
     rot = torch.stack(
         [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
         ],
         dim=-1,
     ).reshape(-1, 3, 3)
@@ -83,9 +89,10 @@ def reference_composite(means2d, conics, depths, opacities, feats, width, height
         order = torch.argsort(key.detach(), stable=True)
         delta = means2d[c, order][None] - centres[:, None]  # [P, N, 2]
         con = conics[c, order]
-        sigma = 0.5 * (con[:, 0] * delta[..., 0] ** 2 + con[:, 2] * delta[..., 1] ** 2) + con[:, 1] * delta[
-            ..., 0
-        ] * delta[..., 1]
+        sigma = (
+            0.5 * (con[:, 0] * delta[..., 0] ** 2 + con[:, 2] * delta[..., 1] ** 2)
+            + con[:, 1] * delta[..., 0] * delta[..., 1]
+        )
         alpha = (opacities[order] * torch.exp(-sigma)).clamp(max=0.999)
         use = (sigma >= 0) & (alpha >= 1.0 / 255.0) & ok[order][None]
         alpha = torch.where(use, alpha, torch.zeros_like(alpha))
@@ -110,9 +117,7 @@ def reference_render(scene, width, height, sh_degree=None):
         cam_pos = -(scene["viewmats"][:, :3, :3].transpose(-1, -2) @ scene["viewmats"][:, :3, 3:])[..., 0]
         dirs = scene["means"][None] - cam_pos[:, None]
         feats = eval_sh_colors(sh_degree, dirs, feats[None].expand(dirs.shape[0], -1, -1, -1))
-    img, alpha, n_stopped = reference_composite(
-        means2d, conics, depths, scene["opacities"], feats, width, height
-    )
+    img, alpha, n_stopped = reference_composite(means2d, conics, depths, scene["opacities"], feats, width, height)
     if scene.get("backgrounds") is not None:
         img = img + (1 - alpha) * scene["backgrounds"][:, None, None]
     return img, alpha, n_stopped
@@ -147,8 +152,10 @@ def random_scene(n, width, height, dtype, seed, opaque=False, n_cams=2):
         opac = 0.02 + 0.96 * torch.rand(n, generator=g, dtype=torch.float64)
     f = 1.3 * width
     Ks = torch.tensor([[f, 0.0, width / 2 + 0.3], [0.0, f * 1.05, height / 2 - 0.2], [0.0, 0.0, 1.0]])
-    vms = [look_at_viewmat([1.8 * math.sin(0.5 * c), 0.2 * c, -1.8 * math.cos(0.5 * c)], [0, 0, 0], torch.float64)
-           for c in range(n_cams)]
+    vms = [
+        look_at_viewmat([1.8 * math.sin(0.5 * c), 0.2 * c, -1.8 * math.cos(0.5 * c)], [0, 0, 0], torch.float64)
+        for c in range(n_cams)
+    ]
     scene = {
         "means": means,
         "quats": torch.randn(n, 4, generator=g, dtype=torch.float64),
@@ -170,8 +177,16 @@ def with_grad(scene):
 def render(scene, width, height, **kwargs):
     kwargs.setdefault("backend", "torch")
     return rasterize(
-        scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["colors"],
-        scene["viewmats"], scene["Ks"], width, height, backgrounds=scene.get("backgrounds"),
+        scene["means"],
+        scene["quats"],
+        scene["scales"],
+        scene["opacities"],
+        scene["colors"],
+        scene["viewmats"],
+        scene["Ks"],
+        width,
+        height,
+        backgrounds=scene.get("backgrounds"),
         **kwargs,
     )
 
@@ -310,7 +325,11 @@ def test_single_isotropic_gaussian_peak_and_falloff():
         colour,
         torch.eye(4, dtype=torch.float64)[None],
         torch.tensor([[[f, 0, cx], [0, f, cy], [0, 0, 1]]], dtype=torch.float64),
-        width, height, backgrounds=bg, backend="torch", render_depth=True,
+        width,
+        height,
+        backgrounds=bg,
+        backend="torch",
+        render_depth=True,
     )
     alpha = out.alphas[0, ..., 0]
     peak = torch.argmax(alpha).item()
@@ -342,9 +361,7 @@ def _assert_finite_render_and_grads(scene, width, height, **kwargs):
 
 @pytest.mark.parametrize("compositor", COMPOSITORS)
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
-@pytest.mark.parametrize(
-    "kind", ["needle", "flat", "tiny", "huge", "zero_quat", "behind", "at_camera"]
-)
+@pytest.mark.parametrize("kind", ["needle", "flat", "tiny", "huge", "zero_quat", "behind", "at_camera"])
 def test_degenerate_inputs_stay_finite(kind, dtype, compositor):
     width, height = 24, 20
     scene = random_scene(40, width, height, dtype, seed=11)
@@ -424,8 +441,17 @@ def test_torch_backend_matches_gsplat_cuda():
     theirs = with_grad(scene)
     out_t = render(ours, width, height)
     out_g = rasterize(
-        theirs["means"], theirs["quats"], theirs["scales"], theirs["opacities"], theirs["colors"],
-        theirs["viewmats"], theirs["Ks"], width, height, backgrounds=theirs["backgrounds"], backend="gsplat",
+        theirs["means"],
+        theirs["quats"],
+        theirs["scales"],
+        theirs["opacities"],
+        theirs["colors"],
+        theirs["viewmats"],
+        theirs["Ks"],
+        width,
+        height,
+        backgrounds=theirs["backgrounds"],
+        backend="gsplat",
     )
     # gsplat uses __expf and float32 sequential products: compare loosely.
     assert (out_t.colors - out_g.colors).abs().max() < 2e-3

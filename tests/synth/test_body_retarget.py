@@ -123,7 +123,15 @@ def test_anny_rig_params_and_groups(anny_body):
     grouped = [n for g in BODY_GROUPS for n in rig.groups[g]]
     assert sorted(grouped) == sorted(p.name for p in rig.params)  # each param in exactly one group
     counts = {g: len(rig.groups[g]) for g in BODY_GROUPS}
-    assert counts == {"torso_head": 18, "left_leg": 15, "right_leg": 15, "left_arm": 9, "right_arm": 9, "left_hand": 12, "right_hand": 12}
+    assert counts == {
+        "torso_head": 18,
+        "left_leg": 15,
+        "right_leg": 15,
+        "left_arm": 9,
+        "right_arm": 9,
+        "left_hand": 12,
+        "right_hand": 12,
+    }
     assert "LeftForeArm.rx" in rig.groups["left_arm"] and "RThumb.rz" in rig.groups["right_hand"]
     assert "LHipJoint.ry" in rig.groups["left_leg"] and "Neck1.rx" in rig.groups["torso_head"]
     assert len(rig.slot_groups()) == 90

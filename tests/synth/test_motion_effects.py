@@ -9,8 +9,15 @@ import pytest
 
 from gsavatar.synth.appearance import AppearanceConfig, AppearanceModel
 from gsavatar.synth.fairness import pooled_r2, predictability, stack_history
-from gsavatar.synth.motion_effects import (MotionEffect, accumulator_state, effect_level, hysteresis_state,
-                                           joint_signal, resolve_joint, spring_response)
+from gsavatar.synth.motion_effects import (
+    MotionEffect,
+    accumulator_state,
+    effect_level,
+    hysteresis_state,
+    joint_signal,
+    resolve_joint,
+    spring_response,
+)
 from gsavatar.synth.presets import PRESETS, SynthConfig
 from tests.synth.test_synth_render import cylinder_body
 
@@ -73,8 +80,9 @@ def test_joint_signals_are_causal_differences():
     np.testing.assert_allclose(joint_signal(j, names, e, FPS), 0.3, atol=1e-12)
     sp = joint_signal(j, names, dataclasses.replace(e, signal="speed"), FPS)
     np.testing.assert_allclose(sp, np.r_[0.0, np.full(F - 1, 2.0)], atol=1e-9)
-    acc = joint_signal(j, names, dataclasses.replace(e, signal="vertical_acceleration", joints=("pelvis",),
-                                                    relative_to=None), FPS)
+    acc = joint_signal(
+        j, names, dataclasses.replace(e, signal="vertical_acceleration", joints=("pelvis",), relative_to=None), FPS
+    )
     np.testing.assert_allclose(acc[2:], 1.0, atol=1e-9)  # backward second differences from frame 2 on
     assert resolve_joint("right_hand", ["pelvis", "right_wrist"]) == 1  # SMPL-X names too
     with pytest.raises(ValueError, match="left_foot"):
@@ -100,12 +108,30 @@ def test_appearance_model_applies_motion_effects_only_to_their_region():
     joints = np.zeros((F, 3, 3))
     joints[:, 0, 1] = 0.9
     joints[:, 2, 1] = 1.5 + np.where(np.arange(F) < 20, 0.0, 0.4)  # the "hand" (head joint here) rises at frame 20
-    e = MotionEffect("lift", "hysteresis", "height", ("Head",), "shirt", "dye", color=(1.4, 0.7, 0.7),
-                     low_quantile=0.1, high_quantile=0.9)
-    cfg = AppearanceConfig(fold_strength=0.0, hair_hue_range=0.0, back_patch_shift=0.0, face_strength=0.0,
-                           motion_effects=(e,))
-    m = AppearanceModel(template, F, rig=rig, tex_size=64, fps=FPS, config=cfg, joint_positions=joints,
-                        joint_names=[j.name for j in rig.joints])
+    e = MotionEffect(
+        "lift",
+        "hysteresis",
+        "height",
+        ("Head",),
+        "shirt",
+        "dye",
+        color=(1.4, 0.7, 0.7),
+        low_quantile=0.1,
+        high_quantile=0.9,
+    )
+    cfg = AppearanceConfig(
+        fold_strength=0.0, hair_hue_range=0.0, back_patch_shift=0.0, face_strength=0.0, motion_effects=(e,)
+    )
+    m = AppearanceModel(
+        template,
+        F,
+        rig=rig,
+        tex_size=64,
+        fps=FPS,
+        config=cfg,
+        joint_positions=joints,
+        joint_names=[j.name for j in rig.joints],
+    )
     np.testing.assert_array_equal(m.motion_levels["lift"], (np.arange(F) >= 20).astype(float))
     a, b = m.texture(5), m.texture(30)
     changed = np.abs(a - b).max(-1) > 1e-6

@@ -25,8 +25,16 @@ from gsavatar.data_schema.rig import rig_from_json
 from gsavatar.geometry.camera import look_at, project
 from gsavatar.synth.appearance import AppearanceConfig, AppearanceModel
 from gsavatar.synth.cameras import dome_kinds, make_dome, special_cameras
-from gsavatar.synth.render import (FrameScene, box_mesh, pose_vertices, render_view, render_views, sample_texture,
-                                   supersampled_rays, texel_visibility)
+from gsavatar.synth.render import (
+    FrameScene,
+    box_mesh,
+    pose_vertices,
+    render_view,
+    render_views,
+    sample_texture,
+    supersampled_rays,
+    texel_visibility,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 SNAPSHOT = Path(__file__).parent / "snapshots" / "tiny.npz"
@@ -41,8 +49,9 @@ def quad(z: float = 0.0, half: float = 0.5) -> tuple[np.ndarray, np.ndarray, np.
     return V, F, uv[F]
 
 
-def front_camera(w: int = 64, h: int = 48, f: float = 60.0, dist=np.zeros(5), d: float = 2.0,
-                 c: tuple[float, float] = (31.7, 23.4)) -> Camera:
+def front_camera(
+    w: int = 64, h: int = 48, f: float = 60.0, dist=np.zeros(5), d: float = 2.0, c: tuple[float, float] = (31.7, 23.4)
+) -> Camera:
     """Camera on +z looking at the origin (image x = world +x, image y = world -y)."""
     R, T = look_at(np.array([0.0, 0.0, d]), np.zeros(3))
     K = np.array([[f, 0, c[0]], [0, f, c[1]], [0, 0, 1.0]])
@@ -65,13 +74,20 @@ def cylinder_body(n_around: int = 40, n_up: int = 48, radius: float = 0.16, heig
     idx = np.arange(len(V)).reshape(n_up + 1, n_around + 1)
     q0, q1, q2, q3 = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
     F = np.concatenate([np.stack([q0, q1, q2], -1).reshape(-1, 3), np.stack([q0, q2, q3], -1).reshape(-1, 3)])
-    rig = rig_from_json({
-        "joints": [{"name": "Hips", "parent": None, "head": [0, 0.9, 0]},
-                   {"name": "Spine", "parent": "Hips", "head": [0, 1.0, 0]},
-                   {"name": "Head", "parent": "Spine", "head": [0, 1.5, 0]}],
-        "pose_params": [{"name": "Spine.rx", "joint": "Spine", "kind": "euler", "axis": [1, 0, 0]},
-                        {"name": "Head.ry", "joint": "Head", "kind": "euler", "axis": [0, 1, 0]}],
-        "groups": {"torso_head": ["Spine.rx", "Head.ry"]}})
+    rig = rig_from_json(
+        {
+            "joints": [
+                {"name": "Hips", "parent": None, "head": [0, 0.9, 0]},
+                {"name": "Spine", "parent": "Hips", "head": [0, 1.0, 0]},
+                {"name": "Head", "parent": "Spine", "head": [0, 1.5, 0]},
+            ],
+            "pose_params": [
+                {"name": "Spine.rx", "joint": "Spine", "kind": "euler", "axis": [1, 0, 0]},
+                {"name": "Head.ry", "joint": "Head", "kind": "euler", "axis": [0, 1, 0]},
+            ],
+            "groups": {"torso_head": ["Spine.rx", "Head.ry"]},
+        }
+    )
     w1 = np.clip((V[:, 1] - 0.8) / 0.4, 0, 1)
     wh = np.clip((V[:, 1] - 1.45) / 0.1, 0, 1)
     W = np.stack([1 - w1, w1 * (1 - wh), wh], 1).astype(np.float32)
@@ -115,7 +131,7 @@ def test_sample_texture_bilinear_is_exact_on_a_ramp():
 
 def naive_quad_render(cam: Camera, half: float = 0.5):
     """Reference: intersect every pixel-centre ray with the plane z=0 analytically (no distortion)."""
-    ys, xs = np.mgrid[0:cam.height, 0:cam.width].astype(np.float64)
+    ys, xs = np.mgrid[0 : cam.height, 0 : cam.width].astype(np.float64)
     xn = (xs - cam.K[0, 2]) / cam.K[0, 0]
     yn = (ys - cam.K[1, 2]) / cam.K[1, 1]
     d = np.stack([xn, yn, np.ones_like(xn)], -1) @ cam.R  # world directions
@@ -137,7 +153,9 @@ def test_render_quad_matches_analytic_texture():
     assert core.sum() > 500
     np.testing.assert_allclose(out.image[core][:, :2], uv[core], atol=2e-4)
     np.testing.assert_allclose(out.image[core][:, 2], 0.25, atol=1e-6)
-    np.testing.assert_allclose(out.image[~inside], np.broadcast_to([0.1, 0.2, 0.3], (int((~inside).sum()), 3)), atol=1e-6)
+    np.testing.assert_allclose(
+        out.image[~inside], np.broadcast_to([0.1, 0.2, 0.3], (int((~inside).sum()), 3)), atol=1e-6
+    )
     assert np.all(out.mask[inside] == 1) and np.all(out.mask[~inside] == 0)
 
 
@@ -199,8 +217,16 @@ def test_occluder_hides_the_body_in_its_view_only():
     cam = front_camera()
     other = Camera("other", cam.K, cam.R, cam.T, cam.dist, cam.width, cam.height)
     box = box_mesh((-0.5, 0.0, 0.6), (1.0, 2.0, 0.2), color=(0.0, 1.0, 0.0))  # covers x < 0 of the quad
-    out = render_views(V, F, cuv, ramp_texture(8), {"front": cam, "other": other}, supersample=1, shading=None,
-                       occluders={"front": [box]})
+    out = render_views(
+        V,
+        F,
+        cuv,
+        ramp_texture(8),
+        {"front": cam, "other": other},
+        supersample=1,
+        shading=None,
+        occluders={"front": [box]},
+    )
     inside, uv = naive_quad_render(cam)
     left, right = inside & (uv[..., 0] < 0.4), inside & (uv[..., 0] > 0.6)
     assert np.all(out["front"].mask[left] == 0) and np.all(out["front"].mask[right] == 1)
@@ -254,8 +280,17 @@ def coupled_model(seed: int = 0, n: int = 3000, n_train: int = 2400, dwell: floa
     rng = np.random.default_rng(123)
     # A smooth, wandering "wrist" angle.
     signal = np.convolve(rng.normal(0, 1, n + 60), np.ones(60) / 60, mode="valid")[:n]
-    m = AppearanceModel(t, n, train_frames=range(n_train), coupling_signal=signal, rig=rig, seed=seed,
-                        tex_size=64, fps=30.0, config=AppearanceConfig(fold_dwell_s=dwell))
+    m = AppearanceModel(
+        t,
+        n,
+        train_frames=range(n_train),
+        coupling_signal=signal,
+        rig=rig,
+        seed=seed,
+        tex_size=64,
+        fps=30.0,
+        config=AppearanceConfig(fold_dwell_s=dwell),
+    )
     return m, signal, n_train
 
 
@@ -341,15 +376,22 @@ def snapshot_arrays(cap_dir: Path) -> dict[str, np.ndarray]:
         "mean_color_frame0": np.stack([img0[c].reshape(-1, 3).mean(0) for c in names]),
         "mask_mean_frame0": np.array([read_mask(cap.mask_path(c, 0)).mean() for c in names]),
         "down8_frame0": cv2.resize(img0[first], (8, 8), interpolation=cv2.INTER_AREA),
-        "texture_mean": np.stack([read_image(cap_dir / "gt" / "textures" / f"{f:08d}.png").reshape(-1, 3).mean(0)
-                                  for f in (0, cap.num_frames - 1)]),
+        "texture_mean": np.stack(
+            [
+                read_image(cap_dir / "gt" / "textures" / f"{f:08d}.png").reshape(-1, 3).mean(0)
+                for f in (0, cap.num_frames - 1)
+            ]
+        ),
         "pose_frame0": cap.motion.pose[0],
     }
 
 
 def tree_digest(root: Path) -> dict[str, str]:
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 def test_tiny_capture_is_valid_and_complete(tiny_capture):
@@ -391,8 +433,12 @@ def test_tiny_capture_matches_snapshot(tiny_capture):
     got = snapshot_arrays(tiny_capture)
     with np.load(SNAPSHOT) as z:
         for k, v in got.items():
-            np.testing.assert_allclose(v, z[k], atol=1e-3, err_msg=f"{k} differs from the snapshot; if the change is "
-                                       "intended, regenerate (see module docstring)")
+            np.testing.assert_allclose(
+                v,
+                z[k],
+                atol=1e-3,
+                err_msg=f"{k} differs from the snapshot; if the change is intended, regenerate (see module docstring)",
+            )
 
 
 if __name__ == "__main__":

@@ -27,8 +27,9 @@ from gsavatar.train.predictor import (
 )
 
 A, L, P, N = 6, 4, 6, 4
-SMALL = PredictorConfig(history=N, width=32, heads=2, ff=64, latent_dim=L, token_hidden=16, latent_pca_components=4,
-                        initial_hidden=16)
+SMALL = PredictorConfig(
+    history=N, width=32, heads=2, ff=64, latent_dim=L, token_hidden=16, latent_pca_components=4, initial_hidden=16
+)
 
 
 def synthetic(F: int = 160, seed: int = 0) -> SequenceData:
@@ -162,8 +163,27 @@ def test_predictor_cli_on_a_tiny_avatar_run(tiny_dataset, tmp_path):
     from gsavatar.train.predictor_cli import Predictor
 
     run = tmp_path / "run"
-    assert main(["avatar", "--dataset", str(tiny_dataset), "--out", str(run), "--preset", "tiny", "--steps", "2",
-                 "--lpips", "off", "--image-scale", "0.5", "--no-evaluate"]) == 0
+    assert (
+        main(
+            [
+                "avatar",
+                "--dataset",
+                str(tiny_dataset),
+                "--out",
+                str(run),
+                "--preset",
+                "tiny",
+                "--steps",
+                "2",
+                "--lpips",
+                "off",
+                "--image-scale",
+                "0.5",
+                "--no-evaluate",
+            ]
+        )
+        == 0
+    )
     Predictor(run=run, steps=3, batch_size=2, window=4, log_every=1, device="cpu").run_()
     d = run / "predictor"
     res = json.loads((d / "eval.json").read_text())

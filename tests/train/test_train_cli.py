@@ -18,7 +18,18 @@ import torch
 from gsavatar.train.cli import main
 
 REPO = Path(__file__).resolve().parents[2]
-FAST = ["--preset", "tiny", "--lpips", "off", "--image-scale", "0.5", "--log-every", "1", "--no-evaluate", "--deterministic"]
+FAST = [
+    "--preset",
+    "tiny",
+    "--lpips",
+    "off",
+    "--image-scale",
+    "0.5",
+    "--log-every",
+    "1",
+    "--no-evaluate",
+    "--deterministic",
+]
 
 
 def _curve(run: Path) -> dict[int, float]:
@@ -57,8 +68,12 @@ def test_kill_9_mid_run_then_resume(tiny_dataset, tmp_path):
     ref, run = tmp_path / "ref", tmp_path / "run"
     args = ["avatar", "--dataset", str(tiny_dataset), *FAST, "--steps", "8", "--checkpoint-every", "2"]
     assert main([*args, "--out", str(ref)]) == 0
-    p = subprocess.Popen([sys.executable, "-m", "gsavatar.train.cli", *args, "--out", str(run)], env=_env(),
-                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    p = subprocess.Popen(
+        [sys.executable, "-m", "gsavatar.train.cli", *args, "--out", str(run)],
+        env=_env(),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.time() + 240
     while time.time() < deadline and p.poll() is None:
         m = run / "metrics.jsonl"
@@ -76,11 +91,38 @@ def test_kill_9_mid_run_then_resume(tiny_dataset, tmp_path):
 
 def test_two_gloo_ranks_equal_one_rank(tiny_dataset, tmp_path):
     one, two = tmp_path / "one", tmp_path / "two"
-    args = ["avatar", "--dataset", str(tiny_dataset), *FAST, "--steps", "3", "--batch-size", "2", "--checkpoint-every", "3"]
+    args = [
+        "avatar",
+        "--dataset",
+        str(tiny_dataset),
+        *FAST,
+        "--steps",
+        "3",
+        "--batch-size",
+        "2",
+        "--checkpoint-every",
+        "3",
+    ]
     assert main([*args, "--out", str(one)]) == 0
-    r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-                        "-m", "gsavatar.train.cli", *args, "--out", str(two)], env=_env(), capture_output=True, text=True,
-                       timeout=600)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "torch.distributed.run",
+            "--standalone",
+            "--nproc-per-node",
+            "2",
+            "-m",
+            "gsavatar.train.cli",
+            *args,
+            "--out",
+            str(two),
+        ],
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     c1, c2 = _curve(one), _curve(two)
     assert sorted(c1) == sorted(c2) == [1, 2, 3]
@@ -100,8 +142,25 @@ def test_two_gloo_ranks_equal_one_rank(tiny_dataset, tmp_path):
 @pytest.mark.parametrize("variant,model_variant", [("mmlps_dagger", "mmlps"), ("nrfgca_dagger", "conv_uv")])
 def test_baseline_flag_eval_and_export(tiny_dataset, tmp_path, capsys, variant, model_variant):
     run = tmp_path / variant
-    assert main(["avatar", "--dataset", str(tiny_dataset), *FAST, "--steps", "2", "--correctives-step", "0",
-                 "--variant", variant, "--out", str(run)]) == 0
+    assert (
+        main(
+            [
+                "avatar",
+                "--dataset",
+                str(tiny_dataset),
+                *FAST,
+                "--steps",
+                "2",
+                "--correctives-step",
+                "0",
+                "--variant",
+                variant,
+                "--out",
+                str(run),
+            ]
+        )
+        == 0
+    )
     cfg = json.loads((run / "config.json").read_text())
     assert cfg["model"]["variant"] == model_variant and cfg["model"]["use_latent"] is False
     assert main(["eval", "--run", str(run), "--eval-frames", "1"]) == 0
@@ -130,8 +189,23 @@ def test_eval_reports_the_latent_gain_and_it_is_zero_when_latents_are_cut(tiny_d
     from gsavatar.train.runs import evaluate_run
 
     run = tmp_path / "ours"
-    assert main(["avatar", "--dataset", str(tiny_dataset), *FAST, "--steps", "2", "--correctives-step", "0",
-                 "--out", str(run)]) == 0
+    assert (
+        main(
+            [
+                "avatar",
+                "--dataset",
+                str(tiny_dataset),
+                *FAST,
+                "--steps",
+                "2",
+                "--correctives-step",
+                "0",
+                "--out",
+                str(run),
+            ]
+        )
+        == 0
+    )
     assert main(["eval", "--run", str(run), "--eval-frames", "1"]) == 0
     res = json.loads((run / "eval" / "metrics.json").read_text())
     gain = res["test_frames_heldout_cams"]["psnr_fg"] - res["test_frames_heldout_cams_mean_latent"]["psnr_fg"]
@@ -154,8 +228,23 @@ def test_encoder_is_untouched_until_the_correctives_switch_on(tiny_dataset, tmp_
     from gsavatar.runs.load import load_run
 
     run = tmp_path / "r"
-    assert main(["avatar", "--dataset", str(tiny_dataset), *FAST, "--steps", "3", "--correctives-step", "100",
-                 "--out", str(run)]) == 0
+    assert (
+        main(
+            [
+                "avatar",
+                "--dataset",
+                str(tiny_dataset),
+                *FAST,
+                "--steps",
+                "3",
+                "--correctives-step",
+                "100",
+                "--out",
+                str(run),
+            ]
+        )
+        == 0
+    )
     net, scene, cfg, _ = load_run(run, "cpu")
     init = build_net(scene, model_config(cfg), cfg.seed)
     for (k, a), b in zip(net.encoder.state_dict().items(), init.encoder.state_dict().values()):
@@ -170,8 +259,25 @@ def test_oracle_run_reads_ground_truth_albedo_and_eval_reports_frame_dependence(
     from gsavatar.utils.io import read_image
 
     run = tmp_path / "oracle"
-    assert main(["avatar", "--dataset", str(tiny_dataset), *FAST, "--steps", "3", "--correctives-step", "0",
-                 "--texture-source", "gt", "--out", str(run)]) == 0
+    assert (
+        main(
+            [
+                "avatar",
+                "--dataset",
+                str(tiny_dataset),
+                *FAST,
+                "--steps",
+                "3",
+                "--correctives-step",
+                "0",
+                "--texture-source",
+                "gt",
+                "--out",
+                str(run),
+            ]
+        )
+        == 0
+    )
     assert json.loads((run / "config.json").read_text())["train"]["texture_source"] == "gt"
     assert main(["eval", "--run", str(run), "--eval-frames", "2"]) == 0
     res = json.loads((run / "eval" / "metrics.json").read_text())
@@ -239,5 +345,9 @@ def test_checkpoint_of_an_older_model_config_resumes(tmp_path):
         load_checkpoint(ckpt, {"model": old}, ("model",))
     save_checkpoint(ckpt, step=3, config={"model": old}, modules={"m": torch.nn.Linear(1, 1)}, optimizer=None)
     with pytest.raises(SchemaError, match="config.model"):  # a field that really differs
-        load_checkpoint(ckpt, {"model": {**now, "anchor_sh0": True}}, ("model",),
-                        defaults={"model": dataclass_defaults(ModelConfig)})
+        load_checkpoint(
+            ckpt,
+            {"model": {**now, "anchor_sh0": True}},
+            ("model",),
+            defaults={"model": dataclass_defaults(ModelConfig)},
+        )

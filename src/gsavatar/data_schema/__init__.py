@@ -20,7 +20,25 @@ from gsavatar.data_schema.template import Template, load_template, save_template
 from gsavatar.utils.errors import SchemaError
 
 __all__ = [
-    "BODY_GROUPS", "CAPTURE_FORMAT", "CAPTURE_VERSION", "Camera", "Capture", "Joint", "Motion", "PoseParam",
-    "PreparedScene", "Rig", "SchemaError", "Split", "Template", "check_images", "load_capture", "load_rig",
-    "load_scene", "load_template", "rig_from_json", "save_template", "write_capture_metadata",
+    "BODY_GROUPS",
+    "CAPTURE_FORMAT",
+    "CAPTURE_VERSION",
+    "Camera",
+    "Capture",
+    "Joint",
+    "Motion",
+    "PoseParam",
+    "PreparedScene",
+    "Rig",
+    "SchemaError",
+    "Split",
+    "Template",
+    "check_images",
+    "load_capture",
+    "load_rig",
+    "load_scene",
+    "load_template",
+    "rig_from_json",
+    "save_template",
+    "write_capture_metadata",
 ]

@@ -147,7 +147,9 @@ def _matrix(v, shape: tuple[int, ...] | None, file: Path, fld: str) -> np.ndarra
     """JSON numbers (never booleans or strings) as float64 of ``shape`` (None: any), finite."""
     flat = np.ravel(np.asarray(v, dtype=object)).tolist() if isinstance(v, (list, tuple)) else [v]
     if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in flat):
-        raise SchemaError(file, fld, f"expected numbers{'' if shape is None else f' of shape {list(shape)}'}, got {v!r}"[:300])
+        raise SchemaError(
+            file, fld, f"expected numbers{'' if shape is None else f' of shape {list(shape)}'}, got {v!r}"[:300]
+        )
     try:
         a = np.asarray(v, dtype=np.float64)
     except (TypeError, ValueError):
@@ -174,29 +176,52 @@ def parse_calibration(obj, file: Path) -> dict[str, Camera]:
         R = _matrix(c["R"], (3, 3), file, f"{name}.R")
         T = _matrix(np.ravel(np.asarray(c["T"], dtype=object)).tolist(), (3,), file, f"{name}.T")
         if K[0, 0] <= 0 or K[1, 1] <= 0 or abs(K[2, 2] - 1) > 1e-6 or np.any(K[2, :2] != 0):
-            raise SchemaError(file, f"{name}.K", f"not a pinhole intrinsic matrix (fx, fy > 0, last row [0,0,1]): {K.tolist()}")
+            raise SchemaError(
+                file, f"{name}.K", f"not a pinhole intrinsic matrix (fx, fy > 0, last row [0,0,1]): {K.tolist()}"
+            )
         if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or abs(np.linalg.det(R) - 1) > 1e-4:
-            raise SchemaError(file, f"{name}.R", f"not a rotation (det={np.linalg.det(R):.3f}, |R R^T - I|={np.abs(R @ R.T - np.eye(3)).max():.2g})")
+            raise SchemaError(
+                file,
+                f"{name}.R",
+                f"not a rotation (det={np.linalg.det(R):.3f}, |R R^T - I|={np.abs(R @ R.T - np.eye(3)).max():.2g})",
+            )
         dist = np.zeros(5)
         if c.get("distCoeff") is not None:
             d = _matrix(np.ravel(np.asarray(c["distCoeff"], dtype=object)).tolist(), None, file, f"{name}.distCoeff")
             if d.size not in (4, 5):
-                raise SchemaError(file, f"{name}.distCoeff", f"expected 4 or 5 numbers (k1,k2,p1,p2[,k3]), got {d.size}")
+                raise SchemaError(
+                    file, f"{name}.distCoeff", f"expected 4 or 5 numbers (k1,k2,p1,p2[,k3]), got {d.size}"
+                )
             if np.abs(d).max() > MAX_DISTORTION:
-                raise SchemaError(file, f"{name}.distCoeff", f"implausible coefficients {d.tolist()} (|k| > {MAX_DISTORTION:g})")
+                raise SchemaError(
+                    file, f"{name}.distCoeff", f"implausible coefficients {d.tolist()} (|k| > {MAX_DISTORTION:g})"
+                )
             dist[: d.size] = d
         size = c["imgSize"]
-        if not (isinstance(size, (list, tuple)) and len(size) == 2 and all(is_int(s) and 0 < s <= MAX_IMAGE_SIDE for s in size)):
-            raise SchemaError(file, f"{name}.imgSize", f"expected [width, height], integers in [1, {MAX_IMAGE_SIDE}], got {size!r}")
+        if not (
+            isinstance(size, (list, tuple))
+            and len(size) == 2
+            and all(is_int(s) and 0 < s <= MAX_IMAGE_SIDE for s in size)
+        ):
+            raise SchemaError(
+                file, f"{name}.imgSize", f"expected [width, height], integers in [1, {MAX_IMAGE_SIDE}], got {size!r}"
+            )
         w, h = int(size[0]), int(size[1])
         side = max(w, h)
         for i, ax in ((0, "fx"), (1, "fy")):
             if not FOCAL_RANGE[0] * side <= K[i, i] <= FOCAL_RANGE[1] * side:
-                raise SchemaError(file, f"{name}.K", f"{ax} = {K[i, i]:g} px is implausible for a {w}x{h} image "
-                                  f"(expected {FOCAL_RANGE[0]:g}-{FOCAL_RANGE[1]:g} x {side} px)")
+                raise SchemaError(
+                    file,
+                    f"{name}.K",
+                    f"{ax} = {K[i, i]:g} px is implausible for a {w}x{h} image "
+                    f"(expected {FOCAL_RANGE[0]:g}-{FOCAL_RANGE[1]:g} x {side} px)",
+                )
         if not (-w <= K[0, 2] <= 2 * w and -h <= K[1, 2] <= 2 * h) or abs(K[0, 1]) > K[0, 0]:
-            raise SchemaError(file, f"{name}.K", f"principal point ({K[0, 2]:g}, {K[1, 2]:g}) or skew {K[0, 1]:g} "
-                              f"implausible for a {w}x{h} image")
+            raise SchemaError(
+                file,
+                f"{name}.K",
+                f"principal point ({K[0, 2]:g}, {K[1, 2]:g}) or skew {K[0, 1]:g} implausible for a {w}x{h} image",
+            )
         if np.abs(T).max() > MAX_TRANSLATION_M:
             raise SchemaError(file, f"{name}.T", f"{T.tolist()}: more than {MAX_TRANSLATION_M:g} m (units are metres)")
         cams[name] = Camera(name, K, R, T, dist, w, h)
@@ -221,7 +246,9 @@ def load_motion(path: Path, num_frames: int, pose_dim: int, frames_from: Path | 
             raise SchemaError(path, key, f"missing; has {sorted(z)}")
         a = z[key]
         if a.ndim == 2 and a.shape[1] == width and a.shape[0] != num_frames and frames_from is not None:
-            raise SchemaError(frames_from, "num_frames", f"says {num_frames} frames, but {path.name} {key} has {a.shape[0]}")
+            raise SchemaError(
+                frames_from, "num_frames", f"says {num_frames} frames, but {path.name} {key} has {a.shape[0]}"
+            )
         if a.ndim != 2 or a.shape != (num_frames, width):
             raise SchemaError(path, key, f"expected shape [{num_frames}, {width}], got {list(a.shape)}")
         arrays[key] = _real_array(a, path, key)
@@ -253,7 +280,9 @@ def parse_splits(obj, file: Path, num_frames: int, cameras: dict[str, Camera]) -
         if not isinstance(frames, list) or not all(is_int(f) for f in frames):
             raise SchemaError(file, f"{name}.frames", "must be a list of integer frame indices (not booleans)")
         if len(set(frames)) != len(frames):
-            raise SchemaError(file, f"{name}.frames", f"frame {next(f for f in frames if frames.count(f) > 1)} listed twice")
+            raise SchemaError(
+                file, f"{name}.frames", f"frame {next(f for f in frames if frames.count(f) > 1)} listed twice"
+            )
         if not frames:
             raise SchemaError(file, f"{name}.frames", "empty")
         bad = [f for f in frames if not 0 <= f < num_frames]
@@ -266,7 +295,9 @@ def parse_splits(obj, file: Path, num_frames: int, cameras: dict[str, Camera]) -
         if unknown:
             raise SchemaError(file, f"{name}.cameras", f"unknown camera {unknown[0]!r} (not in calibration.json)")
         if len(set(cams)) != len(cams):
-            raise SchemaError(file, f"{name}.cameras", f"camera {next(c for c in cams if cams.count(c) > 1)!r} listed twice")
+            raise SchemaError(
+                file, f"{name}.cameras", f"camera {next(c for c in cams if cams.count(c) > 1)!r} listed twice"
+            )
         out[name] = Split(list(frames), list(cams))
     # Held-out metrics are only held out if nothing of them was trained on.
     train = out["train"]
@@ -275,11 +306,16 @@ def parse_splits(obj, file: Path, num_frames: int, cameras: dict[str, Camera]) -
             continue
         both = sorted(set(sp.cameras) & set(train.cameras))
         if both:
-            raise SchemaError(file, f"{name}.cameras", f"camera {both[0]!r} is also in train.cameras: splits must not share cameras")
+            raise SchemaError(
+                file, f"{name}.cameras", f"camera {both[0]!r} is also in train.cameras: splits must not share cameras"
+            )
         shared = sorted(set(sp.frames) & set(train.frames))
         if shared:
-            raise SchemaError(file, f"{name}.frames", f"frame {shared[0]} is also in train.frames ({len(shared)} shared): "
-                              "splits must not share frames")
+            raise SchemaError(
+                file,
+                f"{name}.frames",
+                f"frame {shared[0]} is also in train.frames ({len(shared)} shared): splits must not share frames",
+            )
     return out
 
 
@@ -308,7 +344,9 @@ def load_capture(root: str | Path, check_files: bool = True) -> Capture:
     if info.get("format") != CAPTURE_FORMAT:
         raise SchemaError(info_path, "format", f"expected {CAPTURE_FORMAT!r}, got {info.get('format')!r}")
     if info.get("version") != CAPTURE_VERSION:
-        raise SchemaError(info_path, "version", f"unsupported version {info.get('version')!r}; this gsavatar reads {CAPTURE_VERSION}")
+        raise SchemaError(
+            info_path, "version", f"unsupported version {info.get('version')!r}; this gsavatar reads {CAPTURE_VERSION}"
+        )
     fps = check_fps(info.get("fps"), info_path, "fps")
     nf = info.get("num_frames")
     if not is_int(nf) or not 0 < nf <= MAX_FRAMES:
@@ -340,7 +378,9 @@ def check_images(cap: Capture, frames: list[int] | None = None, cams: list[str] 
         for f in frames:
             for p in (cap.image_path(cam, f), cap.mask_path(cam, f)):
                 if not p.exists():
-                    raise SchemaError(p, "", f"missing ({'mask' if 'masks' in p.parts else 'image'} of camera {cam!r}, frame {f})")
+                    raise SchemaError(
+                        p, "", f"missing ({'mask' if 'masks' in p.parts else 'image'} of camera {cam!r}, frame {f})"
+                    )
                 if not p.is_file():  # a FIFO would block the reader forever
                     raise SchemaError(p, "", "not a regular file")
                 inp = oiio.ImageInput.open(str(p))
@@ -355,13 +395,25 @@ def check_images(cap: Capture, frames: list[int] | None = None, cams: list[str] 
                     raise SchemaError(p, "size", f"is {w}x{h}, calibration.json says {c.width}x{c.height} for {cam!r}")
 
 
-def write_capture_metadata(root: str | Path, fps: float, num_frames: int, cameras: dict[str, Camera],
-                           splits: dict[str, Split]) -> None:
+def write_capture_metadata(
+    root: str | Path, fps: float, num_frames: int, cameras: dict[str, Camera], splits: dict[str, Split]
+) -> None:
     """Write capture.json, calibration.json and splits.json atomically."""
     from gsavatar.utils.io import atomic_write_json
 
     root = Path(root)
-    atomic_write_json(root / "capture.json", {"format": CAPTURE_FORMAT, "version": CAPTURE_VERSION, "fps": float(fps),
-                                              "num_frames": int(num_frames), "units": "m"})
+    atomic_write_json(
+        root / "capture.json",
+        {
+            "format": CAPTURE_FORMAT,
+            "version": CAPTURE_VERSION,
+            "fps": float(fps),
+            "num_frames": int(num_frames),
+            "units": "m",
+        },
+    )
     atomic_write_json(root / "calibration.json", {n: c.to_json() for n, c in cameras.items()})
-    atomic_write_json(root / "splits.json", {k: {"frames": list(map(int, s.frames)), "cameras": list(s.cameras)} for k, s in splits.items()})
+    atomic_write_json(
+        root / "splits.json",
+        {k: {"frames": list(map(int, s.frames)), "cameras": list(s.cameras)} for k, s in splits.items()},
+    )

@@ -68,7 +68,9 @@ def read_versioned_json(path: Path, fmt: str, version_key: str, version: int) ->
     ``version_key`` must match; SchemaError names the field."""
     obj = read_json(path)
     if not isinstance(obj, dict) or obj.get("format") != fmt:
-        raise SchemaError(path, "format", f"expected {fmt!r}, got {obj.get('format') if isinstance(obj, dict) else obj!r}")
+        raise SchemaError(
+            path, "format", f"expected {fmt!r}, got {obj.get('format') if isinstance(obj, dict) else obj!r}"
+        )
     if obj.get(version_key) != version:
         raise SchemaError(path, version_key, f"unsupported {version_key} {obj.get(version_key)!r} (expected {version})")
     return obj
@@ -104,8 +106,15 @@ def first_changed_input(old: dict[str, str] | None, new: dict[str, str]) -> str 
     return None
 
 
-def record_stage(root: Path, stage: str, config: dict, files: list[Path], seconds: float, capture: Path | None = None,
-                 inputs: dict[str, str] | None = None) -> None:
+def record_stage(
+    root: Path,
+    stage: str,
+    config: dict,
+    files: list[Path],
+    seconds: float,
+    capture: Path | None = None,
+    inputs: dict[str, str] | None = None,
+) -> None:
     """Mark ``stage`` complete in dataset.json with checksums of its files and the fingerprint of its ``inputs``."""
     obj = read_dataset_json(root)
     if capture is not None:
@@ -146,8 +155,9 @@ def adopt_inputs(root: Path, stage: str, inputs: dict[str, str]) -> None:
     atomic_write_json(root / "dataset.json", obj)
 
 
-def stage_status(root: Path, stage: str, config: dict | None = None, inputs: dict[str, str] | None = None,
-                 check_files: bool = True) -> str | None:
+def stage_status(
+    root: Path, stage: str, config: dict | None = None, inputs: dict[str, str] | None = None, check_files: bool = True
+) -> str | None:
     """None if ``stage`` is complete: recorded with the current version (and ``config``, and ``inputs``
     fingerprint), its files verifying. Otherwise why not, e.g. ``inputs changed (calibration.json)``."""
     try:
@@ -177,8 +187,9 @@ def stage_status(root: Path, stage: str, config: dict | None = None, inputs: dic
     return None
 
 
-def stage_complete(root: Path, stage: str, config: dict | None = None, check_files: bool = True,
-                   inputs: dict[str, str] | None = None) -> bool:
+def stage_complete(
+    root: Path, stage: str, config: dict | None = None, check_files: bool = True, inputs: dict[str, str] | None = None
+) -> bool:
     """True if ``stage`` is recorded with the current version (and config and inputs), and its files verify."""
     return stage_status(root, stage, config, inputs, check_files) is None
 
@@ -193,13 +204,19 @@ def stage_path(root: Path, stage: str, name: str) -> Path:
     no longer matches the checksum its stage recorded (single-file outputs are small: cheap to hash)."""
     obj = read_dataset_json(root)
     if stage not in obj["stages"]:
-        raise SchemaError(root / "dataset.json", f"stages.{stage}", f"stage not run yet: run `avatar-prep {stage}` first")
+        raise SchemaError(
+            root / "dataset.json", f"stages.{stage}", f"stage not run yet: run `avatar-prep {stage}` first"
+        )
     rel = f"{stage.replace('-', '_')}/{name}"
     path = root / rel
     digest = obj["stages"][stage].get("files", {}).get(rel)
     if digest is not None and path.exists() and sha256_file(path) != digest:
-        raise SchemaError(path, "sha256", f"checksum mismatch with dataset.json stages.{stage}: the file is corrupt or was "
-                                          f"changed; re-run `avatar-prep {stage} --force`")
+        raise SchemaError(
+            path,
+            "sha256",
+            f"checksum mismatch with dataset.json stages.{stage}: the file is corrupt or was "
+            f"changed; re-run `avatar-prep {stage} --force`",
+        )
     return path
 
 
@@ -260,8 +277,9 @@ class ShardStore:
             return None
         return first_changed_input(meta["inputs"], inputs)
 
-    def write(self, spec: ShardSpec, arrays: dict[str, np.ndarray], config_hash: str,
-              inputs: dict[str, str] | None = None) -> None:
+    def write(
+        self, spec: ShardSpec, arrays: dict[str, np.ndarray], config_hash: str, inputs: dict[str, str] | None = None
+    ) -> None:
         """Write shard npz then its sidecar, both atomically (sidecar last = commit point). ``inputs``: the
         fingerprint of what the shard's frames were computed from (recorded with its digest)."""
         for k, a in arrays.items():
@@ -271,16 +289,19 @@ class ShardStore:
         npz = self.npz(spec.index)
         with atomic_path(npz, suffix=".npz") as tmp:
             np.savez(tmp, frames=np.asarray(spec.frames, dtype=np.int64), **arrays)
-        atomic_write_json(self.sidecar(spec.index), {
-            "index": spec.index,
-            "frames": spec.frames,
-            "file": npz.name,
-            "sha256": sha256_file(npz),
-            "config_hash": config_hash,
-            "schema_version": SHARDS_VERSION,
-            "arrays": {k: [list(a.shape[1:]), str(a.dtype)] for k, a in arrays.items()},
-            **({"inputs_hash": inputs_digest(inputs), "inputs": inputs} if inputs is not None else {}),
-        })
+        atomic_write_json(
+            self.sidecar(spec.index),
+            {
+                "index": spec.index,
+                "frames": spec.frames,
+                "file": npz.name,
+                "sha256": sha256_file(npz),
+                "config_hash": config_hash,
+                "schema_version": SHARDS_VERSION,
+                "arrays": {k: [list(a.shape[1:]), str(a.dtype)] for k, a in arrays.items()},
+                **({"inputs_hash": inputs_digest(inputs), "inputs": inputs} if inputs is not None else {}),
+            },
+        )
 
     def merge_manifest(self, specs: list[ShardSpec], extra: dict | None = None) -> Path:
         """Merge sidecars into manifest.json; raises if any planned shard is missing."""
@@ -292,14 +313,17 @@ class ShardStore:
                 raise SchemaError(sc, "", f"shard {s.index} of stage {self.stage!r} is missing; re-run the stage")
             shards.append({k: v for k, v in meta.items() if k != "inputs"})  # per-file detail stays in the sidecar
         path = self.dir / "manifest.json"
-        atomic_write_json(path, {
-            "format": SHARDS_FORMAT,
-            "schema_version": SHARDS_VERSION,
-            "stage": self.stage,
-            "num_frames": sum(len(s.frames) for s in specs),
-            "shards": shards,
-            **(extra or {}),
-        })
+        atomic_write_json(
+            path,
+            {
+                "format": SHARDS_FORMAT,
+                "schema_version": SHARDS_VERSION,
+                "stage": self.stage,
+                "num_frames": sum(len(s.frames) for s in specs),
+                "shards": shards,
+                **(extra or {}),
+            },
+        )
         return path
 
 
@@ -344,7 +368,9 @@ class ShardReader:
             # each shard is checked once per reader, when first read (the bytes are in memory anyway)
             if si not in self._verified:
                 if hashlib.sha256(data).hexdigest() != s["sha256"]:
-                    raise SchemaError(p, "sha256", "checksum mismatch with manifest.json: shard is corrupt; re-run the stage")
+                    raise SchemaError(
+                        p, "sha256", "checksum mismatch with manifest.json: shard is corrupt; re-run the stage"
+                    )
                 self._verified.add(si)
             try:
                 with np.load(io.BytesIO(data), allow_pickle=False) as z:

@@ -124,8 +124,13 @@ class Hierarchy:
     @classmethod
     def load(cls, path: str | Path) -> Hierarchy:
         path = Path(path)
-        hdr, arrays = load_versioned_npz(path, HIERARCHY_FORMAT, HIERARCHY_VERSION, what="gsavatar hierarchy",
-                                         keys=(*(f"{lvl}.{f}" for lvl in _LEVELS for f in _POINT_FIELDS), *_TABLES))
+        hdr, arrays = load_versioned_npz(
+            path,
+            HIERARCHY_FORMAT,
+            HIERARCHY_VERSION,
+            what="gsavatar hierarchy",
+            keys=(*(f"{lvl}.{f}" for lvl in _LEVELS for f in _POINT_FIELDS), *_TABLES),
+        )
         levels = {}
         for lvl in _LEVELS:
             vals = []
@@ -136,7 +141,9 @@ class Hierarchy:
                 vals.append(arrays.get(key))
             levels[lvl] = PointSet(*vals)
             if len(levels[lvl]) != hdr["counts"][lvl]:
-                raise SchemaError(path, f"{lvl}.position", f"has {len(levels[lvl])} rows, header says {hdr['counts'][lvl]}")
+                raise SchemaError(
+                    path, f"{lvl}.position", f"has {len(levels[lvl])} rows, header says {hdr['counts'][lvl]}"
+                )
         for t in _TABLES:
             if t not in arrays:
                 raise SchemaError(path, t, "missing")

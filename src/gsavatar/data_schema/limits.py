@@ -37,8 +37,12 @@ def check_motion_values(a: np.ndarray, file: str | Path, field: str) -> None:
     if big.any():
         at = tuple(int(i) for i in np.argwhere(big)[0])
         where = f"frame {at[0]}, column {at[1]}" if len(at) == 2 else f"index {list(at)}"
-        raise SchemaError(file, field, f"{int(big.sum())} values beyond +-{MAX_MOTION_VALUE:g} (first at {where}: "
-                                       f"{float(a[at]):g}); radians and metres are expected")
+        raise SchemaError(
+            file,
+            field,
+            f"{int(big.sum())} values beyond +-{MAX_MOTION_VALUE:g} (first at {where}: "
+            f"{float(a[at]):g}); radians and metres are expected",
+        )
 
 
 def fps_problem(fps: float) -> str | None:
@@ -63,12 +67,17 @@ def resampled_frame_count(n_in: int, fps_in: float, fps_out: float) -> int:
     return int(math.floor((n_in - 1) * fps_out / fps_in + 1e-6)) + 1
 
 
-def check_resampled_frames(n_in: int, fps_in: float, fps_out: float, file: str | Path, field: str,
-                           limit: int = MAX_RESAMPLED_FRAMES) -> int:
+def check_resampled_frames(
+    n_in: int, fps_in: float, fps_out: float, file: str | Path, field: str, limit: int = MAX_RESAMPLED_FRAMES
+) -> int:
     """Output frame count of resampling ``n_in`` frames from ``fps_in`` to ``fps_out``; SchemaError(file,
     field) with the numbers when it exceeds ``limit``."""
     n_out = resampled_frame_count(n_in, fps_in, fps_out)
     if n_out > limit:
-        raise SchemaError(file, field, f"resampling {n_in} frames from {fps_in:g} to {fps_out:g} fps makes {n_out} "
-                                       f"frames, more than the {limit} allowed (drive a part with start/count)")
+        raise SchemaError(
+            file,
+            field,
+            f"resampling {n_in} frames from {fps_in:g} to {fps_out:g} fps makes {n_out} "
+            f"frames, more than the {limit} allowed (drive a part with start/count)",
+        )
     return n_out

@@ -50,13 +50,16 @@ class LocalizationMasks:
             "param_names": list(self.param_names),
             "settings": self.settings,
         }
-        atomic_save_npz(path, header=np.array(json.dumps(header)), pose=self.pose.astype(bool), face=self.face.astype(bool))
+        atomic_save_npz(
+            path, header=np.array(json.dumps(header)), pose=self.pose.astype(bool), face=self.face.astype(bool)
+        )
 
     @classmethod
     def load(cls, path: str | Path) -> LocalizationMasks:
         path = Path(path)
-        hdr, arrays = load_versioned_npz(path, MASKS_FORMAT, MASKS_VERSION, what="gsavatar localization",
-                                         keys=("pose", "face"))
+        hdr, arrays = load_versioned_npz(
+            path, MASKS_FORMAT, MASKS_VERSION, what="gsavatar localization", keys=("pose", "face")
+        )
         for k in ("pose", "face"):
             if k not in arrays:
                 raise SchemaError(path, k, "missing")

@@ -173,8 +173,13 @@ class PosePCA:
     @classmethod
     def load(cls, path: str | Path) -> PosePCA:
         path = Path(path)
-        hdr, arrays = load_versioned_npz(path, PCA_FORMAT, PCA_VERSION, what="gsavatar pose PCA",
-                                         keys=("mean", "basis", "sigma", "component_group", "slot_group"))
+        hdr, arrays = load_versioned_npz(
+            path,
+            PCA_FORMAT,
+            PCA_VERSION,
+            what="gsavatar pose PCA",
+            keys=("mean", "basis", "sigma", "component_group", "slot_group"),
+        )
         for key in ("mean", "basis", "sigma", "component_group", "slot_group"):
             if key not in arrays:
                 raise SchemaError(path, key, "missing")

@@ -117,8 +117,11 @@ class GroundTruthTextures:
         S = self.size
         tex = load_gt_texture(self.capture.root, frame, S)
         if tex is None:
-            raise SchemaError(self.capture.root / "gt" / "textures" / f"{frame:08d}.png", "texture_source",
-                              "texture_source='gt' needs a synthetic capture's ground-truth textures (gt/textures/*.png)")
+            raise SchemaError(
+                self.capture.root / "gt" / "textures" / f"{frame:08d}.png",
+                "texture_source",
+                "texture_source='gt' needs a synthetic capture's ground-truth textures (gt/textures/*.png)",
+            )
         fm = self.capture.template.face_uv_mask
         if fm is not None:
             if self._face_region is None:
@@ -127,7 +130,9 @@ class GroundTruthTextures:
         return tex
 
 
-def frame_textures(scene: PreparedScene, source: TextureSource = "projected") -> ProjectedTextures | GroundTruthTextures:
+def frame_textures(
+    scene: PreparedScene, source: TextureSource = "projected"
+) -> ProjectedTextures | GroundTruthTextures:
     """The reader of ``scene``'s encoder-input textures for ``source``."""
     if source == "projected":
         return ProjectedTextures(scene.dataset)

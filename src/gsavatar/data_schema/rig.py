@@ -94,9 +94,7 @@ class Rig:
 
     def parents(self) -> np.ndarray:
         """Parent index per joint, -1 for the root.  # [J] int64"""
-        return np.array(
-            [-1 if j.parent is None else self._index[j.parent] for j in self.joints], dtype=np.int64
-        )
+        return np.array([-1 if j.parent is None else self._index[j.parent] for j in self.joints], dtype=np.int64)
 
     def heads(self) -> np.ndarray:
         """Rest joint positions.  # [J, 3] float32, metres"""

@@ -76,9 +76,13 @@ def validate_template(t: Template, num_joints: int, where: Path) -> None:
     e2 = t.vertices[t.faces[:, 2]] - t.vertices[t.faces[:, 0]]
     area = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)
     if np.mean(area <= 1e-12) > 0.5:
-        raise SchemaError(mesh, "f", f"{int(np.sum(area <= 1e-12))} of {len(area)} triangles are degenerate (zero area)")
+        raise SchemaError(
+            mesh, "f", f"{int(np.sum(area <= 1e-12))} of {len(area)} triangles are degenerate (zero area)"
+        )
     if t.skin_indices.shape != t.skin_weights.shape or t.skin_indices.ndim != 2:
-        raise SchemaError(sw, "indices/weights", f"must both be [V, K], got {t.skin_indices.shape} and {t.skin_weights.shape}")
+        raise SchemaError(
+            sw, "indices/weights", f"must both be [V, K], got {t.skin_indices.shape} and {t.skin_weights.shape}"
+        )
     if t.skin_indices.shape[0] != V:
         raise SchemaError(sw, "indices", f"has {t.skin_indices.shape[0]} rows but mesh.obj has {V} vertices")
     if not np.all(np.isfinite(t.skin_weights)):
@@ -108,7 +112,9 @@ def load_template(where: str | Path, num_joints: int) -> Template:
         raise SchemaError(sw, "indices/weights", f"missing; has {sorted(z)}")
     for k, kinds in (("indices", "iu"), ("weights", "iuf")):
         if z[k].dtype.kind not in kinds:
-            raise SchemaError(sw, k, f"expected {'integers' if kinds == 'iu' else 'real numbers'}, got dtype {z[k].dtype}")
+            raise SchemaError(
+                sw, k, f"expected {'integers' if kinds == 'iu' else 'real numbers'}, got dtype {z[k].dtype}"
+            )
     idx = np.asarray(z["indices"], dtype=np.int32)
     w = np.asarray(z["weights"], dtype=np.float32)
     mask = None
@@ -128,6 +134,8 @@ def save_template(t: Template, where: str | Path) -> None:
 
     where = Path(where)
     write_obj(where / "mesh.obj", t.vertices, t.faces, t.uvs, t.face_uvs)
-    atomic_save_npz(where / "skin_weights.npz", indices=t.skin_indices.astype(np.int32), weights=t.skin_weights.astype(np.float32))
+    atomic_save_npz(
+        where / "skin_weights.npz", indices=t.skin_indices.astype(np.int32), weights=t.skin_weights.astype(np.float32)
+    )
     if t.face_uv_mask is not None:
         write_image(where / "face_uv_mask.png", t.face_uv_mask.astype(np.float32))

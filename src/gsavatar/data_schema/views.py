@@ -50,20 +50,24 @@ class UndistortMaps:
         """(map_x, map_y) of ``cam``: undistorted pixel -> distorted pixel.  # [H, W] float32 each"""
         key = (cam.name, cam.width, cam.height, tuple(cam.dist))
         if key not in self._maps:
-            self._maps[key] = cv2.initUndistortRectifyMap(cam.K, cam.dist, None, cam.K, (cam.width, cam.height),
-                                                          cv2.CV_32FC1)
+            self._maps[key] = cv2.initUndistortRectifyMap(
+                cam.K, cam.dist, None, cam.K, (cam.width, cam.height), cv2.CV_32FC1
+            )
         return self._maps[key]
 
 
-def load_view(cam: Camera, image_path: Path, mask_path: Path, geo: ViewGeometry,
-              maps: UndistortMaps | None = None) -> tuple[np.ndarray, np.ndarray]:
+def load_view(
+    cam: Camera, image_path: Path, mask_path: Path, geo: ViewGeometry, maps: UndistortMaps | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Image [h,w,3] and mask [h,w] float32 in [0,1], undistorted and resized to ``geo``.
 
     ``maps``: the cache of undistortion tables to use (None: build this camera's table for this call)."""
     img = read_image(image_path)
     msk = read_mask(mask_path)
     if img.shape[:2] != (cam.height, cam.width) or msk.shape != (cam.height, cam.width):
-        raise SchemaError(image_path, "size", f"is {img.shape[1]}x{img.shape[0]}, calibration says {cam.width}x{cam.height}")
+        raise SchemaError(
+            image_path, "size", f"is {img.shape[1]}x{img.shape[0]}, calibration says {cam.width}x{cam.height}"
+        )
     if np.any(cam.dist):
         mx, my = (maps if maps is not None else UndistortMaps()).get(cam)
         img = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)

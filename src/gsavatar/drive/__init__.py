@@ -7,5 +7,17 @@ from gsavatar.drive.driver import DriveConfig, DriveFrame, Driver, FrameInputs, 
 from gsavatar.drive.motion import DrivingMotion, GroundTruth, load_driving_motion
 from gsavatar.drive.sources import LATENT_SOURCES, DriveMode, LatentSource, SourceContext
 
-__all__ = ["LATENT_SOURCES", "DriveConfig", "DriveFrame", "DriveMode", "Driver", "DrivingMotion", "FrameInputs",
-           "GroundTruth", "LatentSource", "SourceContext", "load_driving_motion", "motion_inputs"]
+__all__ = [
+    "LATENT_SOURCES",
+    "DriveConfig",
+    "DriveFrame",
+    "DriveMode",
+    "Driver",
+    "DrivingMotion",
+    "FrameInputs",
+    "GroundTruth",
+    "LatentSource",
+    "SourceContext",
+    "load_driving_motion",
+    "motion_inputs",
+]

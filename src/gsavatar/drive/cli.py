@@ -149,9 +149,17 @@ def drive(args: DriveArgs) -> dict:
     scene = d.scene
     with warnings.catch_warnings(record=True) as caught:  # e.g. rig joints no BVH joint drives: one line each
         warnings.simplefilter("always")
-        motion = load_driving_motion(args.motion, scene.capture.rig, d.fps, fps=args.motion_fps or None,
-                                     start=args.start, count=args.count or None, split=args.split,
-                                     joint_map=args.joint_map, amass_up=args.amass_up)
+        motion = load_driving_motion(
+            args.motion,
+            scene.capture.rig,
+            d.fps,
+            fps=args.motion_fps or None,
+            start=args.start,
+            count=args.count or None,
+            split=args.split,
+            joint_map=args.joint_map,
+            amass_up=args.amass_up,
+        )
     motion_warnings = [str(w.message) for w in caught]
     for w in motion_warnings:
         print(f"warning: {w}", file=sys.stderr)
@@ -186,7 +194,11 @@ def drive(args: DriveArgs) -> dict:
                 if t == 0:
                     cams = [v.name for v in d.views]  # orbit views are placed by start()
                 latents.append(fr.latents.numpy())
-                gts = load_ground_truth(gt.capture, gt.frames[t], cams, cfg.image_scale, d.bg, maps) if gt is not None else {}
+                gts = (
+                    load_ground_truth(gt.capture, gt.frames[t], cams, cfg.image_scale, d.bg, maps)
+                    if gt is not None
+                    else {}
+                )
                 for c in cams:
                     g = gts.get(c)
                     acc.add(t, c, fr.images[c], fr.alphas[c], None if g is None else g[0], None if g is None else g[1])
@@ -198,33 +210,56 @@ def drive(args: DriveArgs) -> dict:
             writer.close()
     seconds = time.perf_counter() - t0
     lat = np.stack(latents).astype(np.float32)
-    arrays = {"latents": lat, "pose": motion.pose, "root_rotation": motion.root_rotation,
-              "root_translation": motion.root_translation, "fps": np.float32(motion.fps)}
+    arrays = {
+        "latents": lat,
+        "pose": motion.pose,
+        "root_rotation": motion.root_rotation,
+        "root_translation": motion.root_translation,
+        "fps": np.float32(motion.fps),
+    }
     if motion.face is not None:
         arrays["face"] = motion.face
     atomic_save_npz(out / "latents.npz", **arrays)
     summary = acc.summary()
     info = {
-        "run": str(args.run), "motion": motion.source, "mode": cfg.mode, "frames": T, "fps": motion.fps,
-        "source_fps": motion.source_fps, "resampled": abs(motion.fps - motion.source_fps) > 1e-9,
-        "cameras": cams, "video": str(video), "video_fps": fps_video, "seconds": round(seconds, 3),
-        "ground_truth": gt is not None, "render_change": summary["mean"].get("render_change"),
+        "run": str(args.run),
+        "motion": motion.source,
+        "mode": cfg.mode,
+        "frames": T,
+        "fps": motion.fps,
+        "source_fps": motion.source_fps,
+        "resampled": abs(motion.fps - motion.source_fps) > 1e-9,
+        "cameras": cams,
+        "video": str(video),
+        "video_fps": fps_video,
+        "seconds": round(seconds, 3),
+        "ground_truth": gt is not None,
+        "render_change": summary["mean"].get("render_change"),
         "motion_warnings": motion_warnings,
         "config": json.loads(json.dumps(dataclasses.asdict(cfg), default=str)),
     }
     if gt is not None:
         fig = acc.write_figure(out / "stability.png")
-        metrics = {"mode": cfg.mode, "lpips_net": lp_name, "protocols": dict(PROTOCOLS), "ag_lpips_nets": ag_names,
-                   "ag_lpips_every": args.ag_lpips_every, "gt_frames": gt.frames, **summary,
-                   "stability_figure": None if fig is None else fig.name}
+        metrics = {
+            "mode": cfg.mode,
+            "lpips_net": lp_name,
+            "protocols": dict(PROTOCOLS),
+            "ag_lpips_nets": ag_names,
+            "ag_lpips_every": args.ag_lpips_every,
+            "gt_frames": gt.frames,
+            **summary,
+            "stability_figure": None if fig is None else fig.name,
+        }
         atomic_write_json(out / "metrics.json", _json_safe(metrics))
         info["metrics"] = summary["mean"]
     if args.ramp_up:
         tex = textures or texture_source(motion, scene, cfg.textures)
         res = measure_ramp_up(d, motion, tex, args.ramp_up, with_images=gt is not None)
         write_ramp_up(_json_safe(res), out)
-        info["ramp_up"] = {m: {"latent_l1_first": v["latent_l1"][0], "latent_l1_last": v["latent_l1"][-1]}
-                           for m, v in res["modes"].items()}
+        info["ramp_up"] = {
+            m: {"latent_l1_first": v["latent_l1"][0], "latent_l1_last": v["latent_l1"][-1]}
+            for m, v in res["modes"].items()
+        }
     atomic_write_json(out / "drive.json", _json_safe(info))
     print(f"avatar-drive: {T} frames x {len(cams)} cameras in {seconds:.1f}s -> {out}")
     if gt is not None:

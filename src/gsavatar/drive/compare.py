@@ -87,8 +87,12 @@ def compare(args: CompareArgs) -> dict:
     cam = args.camera or cams[0]
     if cam not in cap.cameras:
         raise ValueError(f"camera must be one of {sorted(cap.cameras)}, got {cam!r}")
-    d = Driver(args.run, DriveConfig(mode="encoder", capture_cameras=(cam,), image_scale=args.image_scale),
-               loaded=loaded, predictor=None)
+    d = Driver(
+        args.run,
+        DriveConfig(mode="encoder", capture_cameras=(cam,), image_scale=args.image_scale),
+        loaded=loaded,
+        predictor=None,
+    )
     motion = load_driving_motion(cap.root, cap.rig, d.fps, split="test")
     T = motion.num_frames
     for label, lat in sources.items():
@@ -129,12 +133,21 @@ def compare(args: CompareArgs) -> dict:
         panels.append(_panel(img[y0:y1, x0:x1], H, f"{label}: {scores[label]:.2f} dB"))
     out = Path(args.out)
     write_image(out, np.concatenate(panels, 1).astype(np.float32) / 255.0)
-    info = {"run": str(args.run), "capture_frame": motion.gt.frames[t], "test_index": t, "camera": cam,
-            "psnr_fg": scores, "figure": out.name}
+    info = {
+        "run": str(args.run),
+        "capture_frame": motion.gt.frames[t],
+        "test_index": t,
+        "camera": cam,
+        "psnr_fg": scores,
+        "figure": out.name,
+    }
     atomic_write_json(out.with_suffix(".json"), info)
     record_output_file(out, "figure")
-    print(f"latent sources at test frame {motion.gt.frames[t]} ({cam}): "
-          + ", ".join(f"{k} {v:.2f} dB" for k, v in scores.items()) + f" -> {out}")
+    print(
+        f"latent sources at test frame {motion.gt.frames[t]} ({cam}): "
+        + ", ".join(f"{k} {v:.2f} dB" for k, v in scores.items())
+        + f" -> {out}"
+    )
     return info
 
 

@@ -104,9 +104,14 @@ class FrameInputs(NamedTuple):
 
     def batch(self, latents: Tensor | None) -> FrameBatch:
         """This frame as a batch of one for the net, with given latents ``[A, L]`` (None: the model has none)."""
-        return FrameBatch(self.pose[None], self.root_rotation[None], self.root_translation[None],
-                          None if self.face is None else self.face[None], None,
-                          None if latents is None else latents[None])
+        return FrameBatch(
+            self.pose[None],
+            self.root_rotation[None],
+            self.root_translation[None],
+            None if self.face is None else self.face[None],
+            None,
+            None if latents is None else latents[None],
+        )
 
 
 class View(NamedTuple):
@@ -145,7 +150,9 @@ def capture_views(capture: Capture, names: tuple[str, ...] | list[str], image_sc
         names = (capture.splits["test"] if "test" in capture.splits else capture.splits["train"]).cameras
     unknown = [n for n in names if n not in capture.cameras]
     if unknown:
-        raise ValueError(f"capture_cameras: unknown camera {unknown[0]!r}; {capture.root} has {sorted(capture.cameras)}")
+        raise ValueError(
+            f"capture_cameras: unknown camera {unknown[0]!r}; {capture.root} has {sorted(capture.cameras)}"
+        )
     views = []
     for n in names:
         g = scaled_camera(capture.cameras[n], image_scale)
@@ -159,15 +166,22 @@ def motion_inputs(motion: DrivingMotion, t: int, texture: Tensor | None = None) 
         raise ValueError(f"t must be in [0, {motion.num_frames}), got {t}")
     f = torch.from_numpy
     face = None if motion.face is None else f(np.ascontiguousarray(motion.face[t]))
-    return FrameInputs(f(np.ascontiguousarray(motion.pose[t])), f(np.ascontiguousarray(motion.root_rotation[t])),
-                       f(np.ascontiguousarray(motion.root_translation[t])), face, texture)
+    return FrameInputs(
+        f(np.ascontiguousarray(motion.pose[t])),
+        f(np.ascontiguousarray(motion.root_rotation[t])),
+        f(np.ascontiguousarray(motion.root_translation[t])),
+        face,
+        texture,
+    )
 
 
 def texture_source(motion: DrivingMotion, scene, textures: Path | None) -> Callable[[int], Tensor]:
     """Driving frame t -> projected UV texture [3, S, S] of its ground-truth capture frame."""
     if motion.gt is None:
-        raise ValueError("the encoder modes need projected UV textures of the driving frames: drive with a capture "
-                         "directory (at its own frame rate, or an integer multiple of it)")
+        raise ValueError(
+            "the encoder modes need projected UV textures of the driving frames: drive with a capture "
+            "directory (at its own frame rate, or an integer multiple of it)"
+        )
     cap_root = Path(motion.gt.capture.root).resolve()
     ds = Path(textures) if textures is not None else None
     if ds is None:
@@ -199,8 +213,15 @@ class Driver:
         camera_capture: capture whose calibrated cameras render (default: the run's capture).
     """
 
-    def __init__(self, run: str | Path, config: DriveConfig | None = None, *, loaded: LoadedRun | None = None,
-                 predictor="auto", camera_capture: Capture | None = None) -> None:
+    def __init__(
+        self,
+        run: str | Path,
+        config: DriveConfig | None = None,
+        *,
+        loaded: LoadedRun | None = None,
+        predictor="auto",
+        camera_capture: Capture | None = None,
+    ) -> None:
         self.config = cfg = config if config is not None else DriveConfig()
         self.run = Path(run)
         self.loaded = loaded if loaded is not None else load_run(self.run, cfg.device)
@@ -224,10 +245,13 @@ class Driver:
             predictor = predictor.to(self.device).eval()
         self.predictor = predictor
         if kind.needs_predictor and predictor is None:
-            raise ValueError(f"mode {cfg.mode!r} needs a trained appearance predictor in {self.run / 'predictor'}; "
-                             "train one first or use mode 'encoder' (needs textures)")
-        self.source: LatentSource = kind(SourceContext(cfg, self.encode, predictor, self.num_anchors,
-                                                       self.latent_dim, self.device))
+            raise ValueError(
+                f"mode {cfg.mode!r} needs a trained appearance predictor in {self.run / 'predictor'}; "
+                "train one first or use mode 'encoder' (needs textures)"
+            )
+        self.source: LatentSource = kind(
+            SourceContext(cfg, self.encode, predictor, self.num_anchors, self.latent_dim, self.device)
+        )
         """The latent source of ``config.mode`` (:class:`~gsavatar.drive.sources.PoseOnly` without latents)."""
         self.fps = float(getattr(predictor, "fps", 0.0) or scene.capture.fps)
         """Frame rate the predictor was trained at (driving motions are resampled to it)."""
@@ -246,8 +270,13 @@ class Driver:
 
     def with_mode(self, mode: DriveMode) -> Driver:
         """A driver of another mode sharing this one's run, predictor and cameras (fresh state)."""
-        return Driver(self.run, dataclasses.replace(self.config, mode=mode), loaded=self.loaded,
-                      predictor=self.predictor, camera_capture=self.camera_capture)
+        return Driver(
+            self.run,
+            dataclasses.replace(self.config, mode=mode),
+            loaded=self.loaded,
+            predictor=self.predictor,
+            camera_capture=self.camera_capture,
+        )
 
     # ------------------------------------------------------------------ latents
     @property
@@ -299,7 +328,9 @@ class Driver:
             out = self.net(x.batch(lat), sh_degree=self.sh_degree)
             center = out.avatar.means[0].mean(0).cpu().double().numpy()
             s = self.config.orbit_size
-            vms, Ks = orbit_cameras(center, self.config.orbit_radius, self.config.orbit_height, self.config.orbit_views, s, s)
+            vms, Ks = orbit_cameras(
+                center, self.config.orbit_radius, self.config.orbit_height, self.config.orbit_views, s, s
+            )
             self.views = [View(f"orbit{i:02d}", vms[i], Ks[i], s, s) for i in range(len(vms))]
         self.source.init(x)
 
@@ -310,8 +341,16 @@ class Driver:
         out = self.net(x.batch(latents.to(self.device) if self.has_latents else None), sh_degree=self.sh_degree)
         images, alphas = {}, {}
         for v in self.views:
-            col, alp = render_views(out.avatar, v.viewmat[None].to(self.device), v.K[None].to(self.device), v.width,
-                                    v.height, self.bg[None], self.sh_degree, self.backend)
+            col, alp = render_views(
+                out.avatar,
+                v.viewmat[None].to(self.device),
+                v.K[None].to(self.device),
+                v.width,
+                v.height,
+                self.bg[None],
+                self.sh_degree,
+                self.backend,
+            )
             images[v.name] = col[0].clamp(0, 1).permute(1, 2, 0).float().cpu()
             alphas[v.name] = alp[0, 0].float().cpu()
         return images, alphas

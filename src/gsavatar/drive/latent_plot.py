@@ -25,8 +25,12 @@ from gsavatar.utils.io import atomic_write_json, read_npz, write_image
 from gsavatar.utils.jsonio import read_json
 from gsavatar.utils.outdir import claim_output_file, record_output_file
 
-COLOURS = {"encoder": (20, 20, 20), "predictor (zero init)": (40, 110, 230), "predictor (encoder init)": (30, 160, 60),
-           "training mean": (150, 150, 150)}
+COLOURS = {
+    "encoder": (20, 20, 20),
+    "predictor (zero init)": (40, 110, 230),
+    "predictor (encoder init)": (30, 160, 60),
+    "training mean": (150, 150, 150),
+}
 STATE_COLOURS = [(200, 60, 40), (40, 140, 200), (170, 80, 190), (60, 170, 120), (220, 150, 30), (100, 100, 100)]
 
 
@@ -53,8 +57,9 @@ def _longest_run(frames: np.ndarray) -> np.ndarray:
     return max(parts, key=len)
 
 
-def _plot(curves: dict[str, np.ndarray], colours: dict[str, tuple], title: str, width: int = 960,
-          height: int = 300) -> np.ndarray:
+def _plot(
+    curves: dict[str, np.ndarray], colours: dict[str, tuple], title: str, width: int = 960, height: int = 300
+) -> np.ndarray:
     """A line plot with a legend, drawn with OpenCV. curves: label -> [T]. -> [height, width, 3] uint8 (RGB)."""
     img = np.full((height, width, 3), 255, np.uint8)
     left, right, top, bottom = 50, 190, 30, 30
@@ -68,8 +73,9 @@ def _plot(curves: dict[str, np.ndarray], colours: dict[str, tuple], title: str, 
     cv2.rectangle(img, (left, top), (left + w, top + h), (0, 0, 0), 1)
     for frac in (0.0, 0.5, 1.0):
         y = int(top + h * (1 - frac))
-        cv2.putText(img, f"{lo + frac * (hi - lo):.2f}", (2, y + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1,
-                    cv2.LINE_AA)
+        cv2.putText(
+            img, f"{lo + frac * (hi - lo):.2f}", (2, y + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA
+        )
     cv2.putText(img, title, (left, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
     for k, (label, v) in enumerate(curves.items()):
         v = np.asarray(v, np.float64)
@@ -80,10 +86,12 @@ def _plot(curves: dict[str, np.ndarray], colours: dict[str, tuple], title: str, 
         c = colours.get(label, STATE_COLOURS[k % len(STATE_COLOURS)])
         cv2.polylines(img, [pts.reshape(-1, 1, 2)], False, c, 2, cv2.LINE_AA)
         cv2.line(img, (left + w + 10, top + 12 + 18 * k), (left + w + 30, top + 12 + 18 * k), c, 2, cv2.LINE_AA)
-        cv2.putText(img, label, (left + w + 35, top + 16 + 18 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1,
-                    cv2.LINE_AA)
-    cv2.putText(img, "test frame", (left + w // 2 - 30, height - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1,
-                cv2.LINE_AA)
+        cv2.putText(
+            img, label, (left + w + 35, top + 16 + 18 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA
+        )
+    cv2.putText(
+        img, "test frame", (left + w // 2 - 30, height - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA
+    )
     return img
 
 
@@ -121,8 +129,10 @@ def latent_curves(run: Path, capture: Path | None = None, split: str = "test") -
     row = {int(f): i for i, f in enumerate(t_frames)}
     enc = torch.as_tensor(t_lat[[row[int(f)] for f in frames]])  # [T, A, L]
     m = cap.motion
-    P, R, T = (torch.as_tensor(np.asarray(a)[frames], dtype=torch.float32)
-               for a in (m.pose, m.root_rotation, m.root_translation))
+    P, R, T = (
+        torch.as_tensor(np.asarray(a)[frames], dtype=torch.float32)
+        for a in (m.pose, m.root_rotation, m.root_translation)
+    )
     zero = model.rollout(P, R, T, model.zero_latents())
     teach = model.rollout(P, R, T, enc[0], first_is_given=True)
     mean = model.latent_mean.expand_as(enc)
@@ -144,9 +154,15 @@ def latent_curves(run: Path, capture: Path | None = None, split: str = "test") -
     if gt.exists():
         z = read_npz(gt, keys=("names", "levels"))
         states = {str(n): z["levels"][frames, i].astype(np.float64) for i, n in enumerate(z["names"])}
-    return {"run": str(run), "capture": str(capture), "split": split, "frames": frames.tolist(),
-            "pc1": {k: v.tolist() for k, v in curves.items()}, "states": {k: v.tolist() for k, v in states.items()},
-            "sources": stats}
+    return {
+        "run": str(run),
+        "capture": str(capture),
+        "split": split,
+        "frames": frames.tolist(),
+        "pc1": {k: v.tolist() for k, v in curves.items()},
+        "states": {k: v.tolist() for k, v in states.items()},
+        "sources": stats,
+    }
 
 
 def write_latent_plot(args: LatentPlotArgs) -> dict:
@@ -155,10 +171,20 @@ def write_latent_plot(args: LatentPlotArgs) -> dict:
     res = latent_curves(args.run, args.capture, args.split)
     panels = []
     if res["states"]:
-        panels.append(_plot({k: np.asarray(v) for k, v in res["states"].items()}, {},
-                            "ground-truth appearance states (gt/motion_states.npz)"))
-    panels.append(_plot({k: np.asarray(v) for k, v in res["pc1"].items()}, COLOURS,
-                        f"first principal component of the latents ({res['split']} frames)"))
+        panels.append(
+            _plot(
+                {k: np.asarray(v) for k, v in res["states"].items()},
+                {},
+                "ground-truth appearance states (gt/motion_states.npz)",
+            )
+        )
+    panels.append(
+        _plot(
+            {k: np.asarray(v) for k, v in res["pc1"].items()},
+            COLOURS,
+            f"first principal component of the latents ({res['split']} frames)",
+        )
+    )
     write_image(args.out, np.concatenate(panels, 0).astype(np.float32) / 255.0)
     atomic_write_json(Path(args.out).with_suffix(".json"), res)
     record_output_file(args.out, "figure")

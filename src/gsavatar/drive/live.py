@@ -59,11 +59,20 @@ def covariances_from(quats: Tensor, scales: Tensor) -> Tensor:
     w, x, y, z = quats.unbind(-1)
     sx, sy, sz = scales.unbind(-1)
     # rows of R (wxyz, unit), each column j scaled by s_j
-    m = torch.stack([
-        (1 - 2 * (y * y + z * z)) * sx, 2 * (x * y - w * z) * sy, 2 * (x * z + w * y) * sz,
-        2 * (x * y + w * z) * sx, (1 - 2 * (x * x + z * z)) * sy, 2 * (y * z - w * x) * sz,
-        2 * (x * z - w * y) * sx, 2 * (y * z + w * x) * sy, (1 - 2 * (x * x + y * y)) * sz,
-    ], -1).reshape(-1, 3, 3)
+    m = torch.stack(
+        [
+            (1 - 2 * (y * y + z * z)) * sx,
+            2 * (x * y - w * z) * sy,
+            2 * (x * z + w * y) * sz,
+            2 * (x * y + w * z) * sx,
+            (1 - 2 * (x * x + z * z)) * sy,
+            2 * (y * z - w * x) * sz,
+            2 * (x * z - w * y) * sx,
+            2 * (y * z + w * x) * sy,
+            (1 - 2 * (x * x + y * y)) * sz,
+        ],
+        -1,
+    ).reshape(-1, 3, 3)
     return m @ m.transpose(1, 2)
 
 
@@ -158,8 +167,9 @@ def _viewer_kernel(means, quats, scales, sh, eye, degree, cov, rgb):  # pragma: 
             rgb[i, c] = min(max(v, 0.0), 1.0)
 
 
-def viewer_arrays(means: Tensor, quats: Tensor, scales: Tensor, sh: Tensor, eye: np.ndarray | None,
-                  degree: int) -> tuple[np.ndarray, np.ndarray]:
+def viewer_arrays(
+    means: Tensor, quats: Tensor, scales: Tensor, sh: Tensor, eye: np.ndarray | None, degree: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Fused numba path of :func:`covariances_from` and :func:`sh_to_rgb` (same results, float32 numpy).
 
     Args:
@@ -307,8 +317,12 @@ class LiveGaussians:
         e = None if self.sh0_only or eye is None else np.asarray(eye, np.float32)
         cov, rgb = viewer_arrays(av.means[0], av.quats[0], av.scales[0], av.sh[0], e, deg)
         t2 = time.perf_counter()
-        out = ViewerGaussians(np.ascontiguousarray(av.means[0].float().cpu().numpy()), cov, rgb,
-                              np.ascontiguousarray(av.opacities[0, :, None].float().cpu().numpy()))
+        out = ViewerGaussians(
+            np.ascontiguousarray(av.means[0].float().cpu().numpy()),
+            cov,
+            rgb,
+            np.ascontiguousarray(av.opacities[0, :, None].float().cpu().numpy()),
+        )
         for k, v in (("avatar", t1 - tic), ("covariance + SH -> RGB", t2 - t1)):
             self.timings[k] += v
         self.frames += 1
@@ -335,8 +349,15 @@ def export_drive_plys(args) -> int:
 
     cfg = args.config()
     d = Driver(args.run, cfg)
-    motion = load_driving_motion(args.motion, d.scene.capture.rig, d.fps, fps=args.motion_fps or None,
-                                 start=args.start, count=args.count or None, split=args.split)
+    motion = load_driving_motion(
+        args.motion,
+        d.scene.capture.rig,
+        d.fps,
+        fps=args.motion_fps or None,
+        start=args.start,
+        count=args.count or None,
+        split=args.split,
+    )
     if motion.face is not None and motion.face.shape[1] != d.face_dim:
         from gsavatar.data_schema import SchemaError
 

@@ -53,8 +53,11 @@ def image_scores(pred: Tensor, gt: Tensor, mask: Tensor, lpips=None) -> dict[str
 
     p, g = pred[None].float(), gt[None].float().to(pred.device)
     m = (mask[None].to(pred.device) > 0.5).expand_as(p)
-    out = {"psnr": float(psnr(p, g)[0]), "psnr_fg": float(psnr(p, g, mask=m)[0]) if m.any() else float("nan"),
-           "ssim": float(ssim(p, g)[0])}
+    out = {
+        "psnr": float(psnr(p, g)[0]),
+        "psnr_fg": float(psnr(p, g, mask=m)[0]) if m.any() else float("nan"),
+        "ssim": float(ssim(p, g)[0]),
+    }
     if lpips is not None:
         dev = next(lpips.parameters()).device
         out["lpips"] = float(lpips(p.to(dev), g.to(dev)).mean())
@@ -100,23 +103,40 @@ def _tile(img: Tensor, height: int, text: str) -> np.ndarray:
     return _label(np.ascontiguousarray(a), text)
 
 
-def stability_figure(path: str | Path, frame0: Tensor, frame1: Tensor, gt0: Tensor | None = None,
-                     gt1: Tensor | None = None, t: int = 1, gain: float = 4.0, min_height: int = 256) -> Path:
+def stability_figure(
+    path: str | Path,
+    frame0: Tensor,
+    frame1: Tensor,
+    gt0: Tensor | None = None,
+    gt1: Tensor | None = None,
+    t: int = 1,
+    gain: float = 4.0,
+    min_height: int = 256,
+) -> Path:
     """The paper's figure 7: frames t-1, t and the l1 difference (x ``gain``); GT row when given.
     Images [H,W,3] in [0,1]. Writes a PNG and returns its path."""
     rows = [(frame0, frame1, "render")] + ([(gt0, gt1, "ground truth")] if gt0 is not None and gt1 is not None else [])
     out = []
     for a, b, name in rows:
         diff = ((b - a).abs().mean(-1, keepdim=True) * gain).clamp(0, 1).expand_as(a)
-        out.append(np.concatenate([_tile(a, min_height, f"{name} t={t - 1}"), _tile(b, min_height, f"t={t}"),
-                                   _tile(diff, min_height, f"|l1| x{gain:g}")], 1))
+        out.append(
+            np.concatenate(
+                [
+                    _tile(a, min_height, f"{name} t={t - 1}"),
+                    _tile(b, min_height, f"t={t}"),
+                    _tile(diff, min_height, f"|l1| x{gain:g}"),
+                ],
+                1,
+            )
+        )
     path = Path(path)
     write_image(path, np.concatenate(out, 0).astype(np.float32) / 255.0)
     return path
 
 
-def line_plot(series: dict[str, list[float]], title: str, xlabel: str, ylabel: str,
-              size: tuple[int, int] = (480, 320)) -> np.ndarray:
+def line_plot(
+    series: dict[str, list[float]], title: str, xlabel: str, ylabel: str, size: tuple[int, int] = (480, 320)
+) -> np.ndarray:
     """A simple line plot (axes, ticks, legend) drawn with OpenCV. -> [H, W, 3] uint8 RGB"""
     W, H = size
     img = np.full((H, W, 3), 255, np.uint8)
@@ -159,16 +179,18 @@ def line_plot(series: dict[str, list[float]], title: str, xlabel: str, ylabel: s
 
 
 # --------------------------------------------------------------------------- sequences
-def load_ground_truth(capture, frame: int, cameras: list[str], image_scale: float,
-                      background: Tensor, maps: UndistortMaps | None = None) -> dict[str, tuple[Tensor, Tensor]]:
+def load_ground_truth(
+    capture, frame: int, cameras: list[str], image_scale: float, background: Tensor, maps: UndistortMaps | None = None
+) -> dict[str, tuple[Tensor, Tensor]]:
     """GT of one capture frame per camera, undistorted/resized like the driver's views.
     ``maps``: undistortion tables to reuse over a sequence (None: built for this call).
     -> {cam: (image on background [H,W,3], mask [H,W])}"""
     out = {}
     for cam in cameras:
         geo = scaled_camera(capture.cameras[cam], image_scale)
-        img, msk = load_view(capture.cameras[cam], capture.image_path(cam, frame), capture.mask_path(cam, frame), geo,
-                             maps)
+        img, msk = load_view(
+            capture.cameras[cam], capture.image_path(cam, frame), capture.mask_path(cam, frame), geo, maps
+        )
         im, mk = torch.from_numpy(img).permute(2, 0, 1), torch.from_numpy(msk)[None]
         out[cam] = (composite(im, mk, background.cpu()).permute(1, 2, 0).contiguous(), mk[0])
     return out
@@ -177,8 +199,9 @@ def load_ground_truth(capture, frame: int, cameras: list[str], image_scale: floa
 class SequenceMetrics:
     """Streaming accumulator: :meth:`add` each (frame, camera) in frame order, then :meth:`summary`."""
 
-    def __init__(self, lpips=None, background: Tensor | None = None, ag_lpips: dict | None = None,
-                 ag_lpips_every: int = 10) -> None:
+    def __init__(
+        self, lpips=None, background: Tensor | None = None, ag_lpips: dict | None = None, ag_lpips_every: int = 10
+    ) -> None:
         """``background`` [3]: what renders and ground truth are composited on (for the ``ag`` protocol's white;
         None: black); ``ag_lpips``: its LPIPS nets, scored on frames ``t % ag_lpips_every == 0``."""
         self.lpips = lpips
@@ -188,8 +211,9 @@ class SequenceMetrics:
         self._prev: dict[str, tuple] = {}
         self.worst: dict | None = None
 
-    def add(self, t: int, cam: str, pred: Tensor, alpha: Tensor, gt: Tensor | None = None,
-            mask: Tensor | None = None) -> dict:
+    def add(
+        self, t: int, cam: str, pred: Tensor, alpha: Tensor, gt: Tensor | None = None, mask: Tensor | None = None
+    ) -> dict:
         """pred [H,W,3], alpha [H,W], gt [H,W,3] | None, mask [H,W] | None -> this row's scores."""
         row: dict = {"t": int(t), "camera": cam}
         region = (mask > 0.5) if mask is not None else (alpha > 0.5)
@@ -197,8 +221,12 @@ class SequenceMetrics:
             row |= image_scores(chw(pred), chw(gt), mask[None], self.lpips)
             bg = self.background.to(pred)
             nets = self.ag_lpips if t % self.ag_lpips_every == 0 else None
-            ag = ag_scores(on_white(chw(pred), alpha[None], bg).clamp(0, 1), on_white(chw(gt), mask[None].to(gt), bg),
-                           mask[None], nets)
+            ag = ag_scores(
+                on_white(chw(pred), alpha[None], bg).clamp(0, 1),
+                on_white(chw(gt), mask[None].to(gt), bg),
+                mask[None],
+                nets,
+            )
             row |= {f"ag_{k}": v for k, v in ag.items()}
         prev = self._prev.get(cam)
         if prev is not None and prev[0] == t - 1:
@@ -216,13 +244,30 @@ class SequenceMetrics:
         return row
 
     def summary(self) -> dict:
-        keys = [k for k in ("psnr", "psnr_fg", "ssim", "lpips", "temporal_error", "render_change", "ag_psnr", "ag_ssim",
-                            "ag_lpips_vgg", "ag_lpips_alex")
-                if any(k in r for r in self.rows)]
+        keys = [
+            k
+            for k in (
+                "psnr",
+                "psnr_fg",
+                "ssim",
+                "lpips",
+                "temporal_error",
+                "render_change",
+                "ag_psnr",
+                "ag_ssim",
+                "ag_lpips_vgg",
+                "ag_lpips_alex",
+            )
+            if any(k in r for r in self.rows)
+        ]
         cams = sorted({r["camera"] for r in self.rows})
         per_cam = {c: {k: _nanmean([r.get(k) for r in self.rows if r["camera"] == c]) for k in keys} for c in cams}
-        out = {"mean": {k: _nanmean([r.get(k) for r in self.rows]) for k in keys}, "per_camera": per_cam,
-               "frames": len({r["t"] for r in self.rows}), "rows": self.rows}
+        out = {
+            "mean": {k: _nanmean([r.get(k) for r in self.rows]) for k in keys},
+            "per_camera": per_cam,
+            "frames": len({r["t"] for r in self.rows}),
+            "rows": self.rows,
+        }
         if self.worst is not None:
             out["worst_pair"] = {"t": self.worst["t"], "camera": self.worst["camera"], "score": self.worst["score"]}
         return out
@@ -236,8 +281,9 @@ class SequenceMetrics:
 
 
 # --------------------------------------------------------------------------- ramp-up
-def measure_ramp_up(driver, motion, textures, frames: int = 30, modes: tuple[str, ...] | None = None,
-                    with_images: bool = True) -> dict:
+def measure_ramp_up(
+    driver, motion, textures, frames: int = 30, modes: tuple[str, ...] | None = None, with_images: bool = True
+) -> dict:
     """Per-frame latent L1 error (vs the encoder's latents of the same frame) and PSNR (vs GT,
     mean over the driver's cameras) for the first ``frames`` frames after each initialisation.
 
@@ -257,8 +303,14 @@ def measure_ramp_up(driver, motion, textures, frames: int = 30, modes: tuple[str
     targets = [driver.encode(x.texture).cpu() for x in inputs]
     cams = [v.name for v in driver.views]
     maps = UndistortMaps()
-    gts = [load_ground_truth(motion.gt.capture, motion.gt.frames[t], cams, driver.config.image_scale, driver.bg, maps)
-           for t in range(n)] if with_images and driver.config.cameras == "capture" else None
+    gts = (
+        [
+            load_ground_truth(motion.gt.capture, motion.gt.frames[t], cams, driver.config.image_scale, driver.bg, maps)
+            for t in range(n)
+        ]
+        if with_images and driver.config.cameras == "capture"
+        else None
+    )
     result: dict = {"frames": n, "fps": motion.fps, "cameras": cams, "modes": {}, "skipped": {}}
     for mode in ramp_up_modes() if modes is None else modes:
         try:
@@ -274,7 +326,9 @@ def measure_ramp_up(driver, motion, textures, frames: int = 30, modes: tuple[str
             if gts is not None:
                 from gsavatar.metrics.image import psnr
 
-                ps.append(float(np.mean([float(psnr(chw(fr.images[c])[None], chw(gts[t][c][0])[None])[0]) for c in cams])))
+                ps.append(
+                    float(np.mean([float(psnr(chw(fr.images[c])[None], chw(gts[t][c][0])[None])[0]) for c in cams]))
+                )
         result["modes"][mode] = {"latent_l1": lat_err, "psnr": ps if gts is not None else None}
     return result
 
@@ -284,11 +338,18 @@ def write_ramp_up(result: dict, out_dir: str | Path, stem: str = "ramp_up") -> t
     out_dir = Path(out_dir)
     atomic_write_json(out_dir / f"{stem}.json", result)
     modes = result["modes"]
-    panels = [line_plot({m: v["latent_l1"] for m, v in modes.items() if not source_class(m).matches_encoder},
-                        "latent L1 vs encoder latents", "frame", "L1")]
+    panels = [
+        line_plot(
+            {m: v["latent_l1"] for m, v in modes.items() if not source_class(m).matches_encoder},
+            "latent L1 vs encoder latents",
+            "frame",
+            "L1",
+        )
+    ]
     if any(v.get("psnr") for v in modes.values()):
-        panels.append(line_plot({m: v["psnr"] for m, v in modes.items() if v.get("psnr")}, "PSNR vs ground truth",
-                                "frame", "dB"))
+        panels.append(
+            line_plot({m: v["psnr"] for m, v in modes.items() if v.get("psnr")}, "PSNR vs ground truth", "frame", "dB")
+        )
     png = out_dir / f"{stem}.png"
     write_image(png, np.concatenate(panels, 1).astype(np.float32) / 255.0)
     return out_dir / f"{stem}.json", png

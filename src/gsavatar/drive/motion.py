@@ -65,7 +65,9 @@ class DrivingMotion(NamedTuple):
 
 
 # --------------------------------------------------------------------------- validation + loading
-def validate_arrays(path: Path, arrays: dict[str, np.ndarray | None], pose_dim: int, face_dim: int | None = None) -> None:
+def validate_arrays(
+    path: Path, arrays: dict[str, np.ndarray | None], pose_dim: int, face_dim: int | None = None
+) -> None:
     """Shapes [T,P]/[T,3]/[T,3]/[T,E], T >= 1, all finite, pose and root within +-MAX_MOTION_VALUE, face within
     float32. Raises SchemaError(path, field)."""
     T = None
@@ -78,8 +80,12 @@ def validate_arrays(path: Path, arrays: dict[str, np.ndarray | None], pose_dim: 
         if a.dtype.kind not in "biuf":
             raise SchemaError(path, key, f"expected an array of real numbers, got dtype {a.dtype}")
         if a.ndim != 2 or (width is not None and a.shape[1] != width):
-            raise SchemaError(path, key, f"expected shape [T, {width if width is not None else 'E'}], got {list(a.shape)}"
-                              + (" (pose width must match the avatar's rig)" if key == "pose" else ""))
+            raise SchemaError(
+                path,
+                key,
+                f"expected shape [T, {width if width is not None else 'E'}], got {list(a.shape)}"
+                + (" (pose width must match the avatar's rig)" if key == "pose" else ""),
+            )
         if T is None:
             T = a.shape[0]
         elif a.shape[0] != T:
@@ -117,8 +123,10 @@ def _npz_fps(path: Path, z: dict[str, np.ndarray], fps: float | None) -> tuple[f
             v = obj.get("fps")
             if v is not None:
                 return check_fps(v, side, "fps"), side, "fps"
-    raise ValueError(f"{path}: frame rate unknown: pass fps=, store an 'fps' array in the npz, or write "
-                     f"{path.with_suffix('.json').name} with {{\"fps\": ...}}")
+    raise ValueError(
+        f"{path}: frame rate unknown: pass fps=, store an 'fps' array in the npz, or write "
+        f'{path.with_suffix(".json").name} with {{"fps": ...}}'
+    )
 
 
 def _select(n: int, start: int, count: int | None, what: Path) -> slice:
@@ -129,9 +137,19 @@ def _select(n: int, start: int, count: int | None, what: Path) -> slice:
     return slice(start, n if count is None else min(n, start + count))
 
 
-def _finish(pose, rr, rt, face, fps_in: float, rig: Rig, target_fps: float | None, source: Path,
-            gt_capture: Capture | None = None, gt_frames: list[int] | None = None,
-            fps_from: tuple[Path, str] | None = None) -> DrivingMotion:
+def _finish(
+    pose,
+    rr,
+    rt,
+    face,
+    fps_in: float,
+    rig: Rig,
+    target_fps: float | None,
+    source: Path,
+    gt_capture: Capture | None = None,
+    gt_frames: list[int] | None = None,
+    fps_from: tuple[Path, str] | None = None,
+) -> DrivingMotion:
     """``fps_from``: (file, field) the source frame rate was read from, named when resampling is refused."""
     fps_out = fps_in if target_fps is None else float(target_fps)
     gt = None
@@ -148,9 +166,18 @@ def _finish(pose, rr, rt, face, fps_in: float, rig: Rig, target_fps: float | Non
     return DrivingMotion(pose, rr, rt, face, fps_out, gt, str(source), float(fps_in))
 
 
-def load_driving_motion(source: str | Path, rig: Rig, target_fps: float | None = None, *, fps: float | None = None,
-                        start: int = 0, count: int | None = None, split: str | None = None,
-                        joint_map: str | Path | None = None, amass_up: UpAxis = "z") -> DrivingMotion:
+def load_driving_motion(
+    source: str | Path,
+    rig: Rig,
+    target_fps: float | None = None,
+    *,
+    fps: float | None = None,
+    start: int = 0,
+    count: int | None = None,
+    split: str | None = None,
+    joint_map: str | Path | None = None,
+    amass_up: UpAxis = "z",
+) -> DrivingMotion:
     """Load a driving motion for an avatar with rig ``rig`` and resample it to ``target_fps``.
 
     source: a ``motion.npz`` (fps from ``fps``, an ``fps`` array in the npz, a sidecar
@@ -179,8 +206,11 @@ def load_driving_motion(source: str | Path, rig: Rig, target_fps: float | None =
             raise SchemaError(src / "capture.json", "", "not a capture directory (capture.json missing)")
         cap = load_capture(src)
         if cap.rig.pose_dim != rig.pose_dim:
-            raise SchemaError(src / "template" / "rig.json", "pose_params",
-                              f"this capture's pose has {cap.rig.pose_dim} slots, the avatar's rig {rig.pose_dim}")
+            raise SchemaError(
+                src / "template" / "rig.json",
+                "pose_params",
+                f"this capture's pose has {cap.rig.pose_dim} slots, the avatar's rig {rig.pose_dim}",
+            )
         frames = list(range(cap.num_frames))
         if split is not None:
             if split not in cap.splits:
@@ -192,15 +222,38 @@ def load_driving_motion(source: str | Path, rig: Rig, target_fps: float | None =
         fps_in = check_fps(cap.fps, src / "capture.json", "fps")
         m = cap.motion
         face = None if m.face is None else m.face[frames]
-        return _finish(m.pose[frames], m.root_rotation[frames], m.root_translation[frames], face, fps_in, rig,
-                       target_fps, src, cap, frames, fps_from=(src / "capture.json", "fps"))
+        return _finish(
+            m.pose[frames],
+            m.root_rotation[frames],
+            m.root_translation[frames],
+            face,
+            fps_in,
+            rig,
+            target_fps,
+            src,
+            cap,
+            frames,
+            fps_from=(src / "capture.json", "fps"),
+        )
     if src.suffix.lower() == ".bvh":
         names = None if joint_map is None else read_joint_map(joint_map)
-        m = motion_from_bvh_file(src, rig, fps_out=target_fps, start=start, count=count, name_map=names,
-                                 name_map_file=joint_map or "name_map")
-        validate_arrays(src, {"pose": m.pose, "root_rotation": m.root_rotation, "root_translation": m.root_translation},
-                        rig.pose_dim)
-        return DrivingMotion(m.pose, m.root_rotation, m.root_translation, None, float(m.fps), None, str(src), float(m.fps))
+        m = motion_from_bvh_file(
+            src,
+            rig,
+            fps_out=target_fps,
+            start=start,
+            count=count,
+            name_map=names,
+            name_map_file=joint_map or "name_map",
+        )
+        validate_arrays(
+            src,
+            {"pose": m.pose, "root_rotation": m.root_rotation, "root_translation": m.root_translation},
+            rig.pose_dim,
+        )
+        return DrivingMotion(
+            m.pose, m.root_rotation, m.root_translation, None, float(m.fps), None, str(src), float(m.fps)
+        )
     if src.suffix.lower() == ".npz":
         z = read_npz(src, keys=MOTION_KEYS + AMASS_KEYS)
         if is_amass(z):
@@ -210,13 +263,31 @@ def load_driving_motion(source: str | Path, rig: Rig, target_fps: float | None =
             else:
                 fps_in, *fps_from = _npz_fps(src, {}, fps)
             sl = _select(len(a.pose), start, count, src)
-            return _finish(a.pose[sl], a.root_rotation[sl], a.root_translation[sl], None, fps_in, rig, target_fps, src,
-                           fps_from=tuple(fps_from))
+            return _finish(
+                a.pose[sl],
+                a.root_rotation[sl],
+                a.root_translation[sl],
+                None,
+                fps_in,
+                rig,
+                target_fps,
+                src,
+                fps_from=tuple(fps_from),
+            )
         arrays = {k: z.get(k) for k in MOTION_KEYS if k != "fps"}
         validate_arrays(src, arrays, rig.pose_dim)
         fps_in, *fps_from = _npz_fps(src, z, fps)
         sl = _select(arrays["pose"].shape[0], start, count, src)
         face = None if arrays["face"] is None else arrays["face"][sl]
-        return _finish(arrays["pose"][sl], arrays["root_rotation"][sl], arrays["root_translation"][sl], face, fps_in,
-                       rig, target_fps, src, fps_from=tuple(fps_from))
+        return _finish(
+            arrays["pose"][sl],
+            arrays["root_rotation"][sl],
+            arrays["root_translation"][sl],
+            face,
+            fps_in,
+            rig,
+            target_fps,
+            src,
+            fps_from=tuple(fps_from),
+        )
     raise ValueError(f"source must be a .npz, .bvh or capture directory, got {src}")

@@ -120,8 +120,10 @@ def claim_address(host: str, port: int, timeout: float = RESOLVE_TIMEOUT_S, warn
         chosen = int(sock.getsockname()[1])
     except OSError as e:
         if e.errno == errno.EADDRINUSE:
-            raise ValueError(f"--port {port}: already in use on {host} (another server holds it); choose another "
-                             f"port, or --port 0 for any free one") from None
+            raise ValueError(
+                f"--port {port}: already in use on {host} (another server holds it); choose another "
+                f"port, or --port 0 for any free one"
+            ) from None
         raise ValueError(f"--host {host!r}: cannot bind {addr[0]}:{port} ({e.strerror or e})") from None
     finally:
         sock.close()
@@ -130,8 +132,10 @@ def claim_address(host: str, port: int, timeout: float = RESOLVE_TIMEOUT_S, warn
     except ValueError:
         loopback = False
     if not loopback:
-        warn(f"warning: the viewer binds {host} ({addr[0]}), which is not loopback; it has no authentication, so "
-             f"anyone who can reach this address can watch and drive the avatar")
+        warn(
+            f"warning: the viewer binds {host} ({addr[0]}), which is not loopback; it has no authentication, so "
+            f"anyone who can reach this address can watch and drive the avatar"
+        )
     return chosen
 
 
@@ -145,8 +149,16 @@ def rest_motion(driver: Driver) -> DrivingMotion:
         rr, rt = m.root_rotation[:1], m.root_translation[:1]
     except (ValueError, OSError):  # a capture without poses: origin, identity
         pass
-    return DrivingMotion(np.zeros((1, P), np.float32), rr.astype(np.float32), rt.astype(np.float32), None,
-                         float(driver.fps), None, "rest pose", float(driver.fps))
+    return DrivingMotion(
+        np.zeros((1, P), np.float32),
+        rr.astype(np.float32),
+        rt.astype(np.float32),
+        None,
+        float(driver.fps),
+        None,
+        "rest pose",
+        float(driver.fps),
+    )
 
 
 @dataclass
@@ -177,8 +189,13 @@ class AvatarViewer:
         mode: initial latent source (default ``driver.config.mode``; may be ``mean_latent``).
     """
 
-    def __init__(self, driver: Driver, motions: dict[str, DrivingMotion], options: ViewerOptions | None = None,
-                 mode: str | None = None) -> None:
+    def __init__(
+        self,
+        driver: Driver,
+        motions: dict[str, DrivingMotion],
+        options: ViewerOptions | None = None,
+        mode: str | None = None,
+    ) -> None:
         if not motions:
             raise ValueError("motions: at least one driving motion is needed")
         self.options = opt = options or ViewerOptions()
@@ -311,8 +328,9 @@ class AvatarViewer:
         if mode == MEAN_LATENT or not live.needs_textures:
             return
         if motion_name not in self._textures:
-            self._textures[motion_name] = texture_source(self.motions[motion_name], live.driver.scene,
-                                                         live.driver.config.textures)
+            self._textures[motion_name] = texture_source(
+                self.motions[motion_name], live.driver.scene, live.driver.config.textures
+            )
 
     # ------------------------------------------------------------------ generation
     def _inputs(self, k: int, t_since_start: int) -> FrameInputs:
@@ -325,7 +343,12 @@ class AvatarViewer:
         """Bring the latent source to motion frame ``target`` and draw its Gaussians."""
         st = self._state
         live = self.live
-        restart = st.restart or self._src_t < 0 or target < self._src_t or target - self._src_t > self.options.max_catch_up + 1
+        restart = (
+            st.restart
+            or self._src_t < 0
+            or target < self._src_t
+            or target - self._src_t > self.options.max_catch_up + 1
+        )
         if restart:
             st.restart = False
             self._seq_start = target
@@ -418,8 +441,9 @@ class AvatarViewer:
             raise ValueError(f"--port {port}: taken by another server while the viewer started; choose another port")
         server.gui.configure_theme(show_logo=False, dark_mode=False)
         g = self.generate(min(int(self._state.pos), self.motion.num_frames - 1))
-        self.handle = server.scene.add_gaussian_splats("/avatar", centers=g.centers, covariances=g.covariances,
-                                                       rgbs=g.rgbs, opacities=g.opacities)
+        self.handle = server.scene.add_gaussian_splats(
+            "/avatar", centers=g.centers, covariances=g.covariances, rgbs=g.rgbs, opacities=g.opacities
+        )
         self._presets = self._camera_presets(g.centers)
         server.scene.set_up_direction(tuple(map(float, self._up)))  # orbiting keeps the capture cameras' up
         self._build_gui()
@@ -458,7 +482,9 @@ class AvatarViewer:
         d = self.live.driver
         c = centers.mean(0).astype(np.float64)
         cap = d.camera_capture
-        names = list(dict.fromkeys(list(cap.splits["test"].cameras if "test" in cap.splits else []) + sorted(cap.cameras)))
+        names = list(
+            dict.fromkeys(list(cap.splits["test"].cameras if "test" in cap.splits else []) + sorted(cap.cameras))
+        )
         cams = {}
         for n in names:
             cam = cap.cameras[n]
@@ -510,8 +536,10 @@ class AvatarViewer:
                 self._gui_playing.value = st.playing
             if st.shown >= 0 and self._gui_frame.value != st.shown:
                 self._gui_frame.value = st.shown
-        status = (f"frame {st.shown + 1}/{self.motion.num_frames} · {st.fps_ema:.1f} frames/s generated · "
-                  f"{st.dropped} dropped · mode `{self.live.mode}`")
+        status = (
+            f"frame {st.shown + 1}/{self.motion.num_frames} · {st.fps_ema:.1f} frames/s generated · "
+            f"{st.dropped} dropped · mode `{self.live.mode}`"
+        )
         if st.error:
             status += f"\n\n**error:** {st.error}"
         if self._gui_status.content != status:
@@ -522,7 +550,9 @@ class AvatarViewer:
         d = self.live.driver
         with gui.add_folder("Playback"):
             self._gui_playing = gui.add_checkbox("Playing", self._state.playing)
-            self._gui_frame = gui.add_slider("Frame", 0, max(self.motion.num_frames - 1, 1), 1, max(self._state.shown, 0))
+            self._gui_frame = gui.add_slider(
+                "Frame", 0, max(self.motion.num_frames - 1, 1), 1, max(self._state.shown, 0)
+            )
             self._gui_speed = gui.add_slider("Speed", 0.1, 4.0, 0.1, float(self._speed))
             self._gui_status = gui.add_markdown("")
         with gui.add_folder("Drive"):
@@ -560,6 +590,7 @@ class AvatarViewer:
                 except Exception as e:  # noqa: BLE001 - reported in the page
                     self._state.error = f"{type(e).__name__}: {e}"
                 self._sync_gui()
+
             return cb
 
         self._gui_playing.on_update(user(lambda: self.play() if self._gui_playing.value else self.pause()))
@@ -597,9 +628,17 @@ class AvatarViewer:
 
 
 # --------------------------------------------------------------------------- entry points
-def viewer_from_run(run: Path, motion: Path | None = None, *, config: DriveConfig | None = None,
-                    options: ViewerOptions | None = None, motion_fps: float = 0.0, start: int = 0, count: int = 0,
-                    split: str | None = None) -> AvatarViewer:
+def viewer_from_run(
+    run: Path,
+    motion: Path | None = None,
+    *,
+    config: DriveConfig | None = None,
+    options: ViewerOptions | None = None,
+    motion_fps: float = 0.0,
+    start: int = 0,
+    count: int = 0,
+    split: str | None = None,
+) -> AvatarViewer:
     """A viewer of run ``run`` driven by ``motion`` (None: the rest pose) and the run's own capture.
 
     ``config``: the drive configuration (mode, textures, device); a run without the mode's predictor or
@@ -617,8 +656,9 @@ def viewer_from_run(run: Path, motion: Path | None = None, *, config: DriveConfi
     cap = d.scene.capture
     motions: dict[str, DrivingMotion] = {}
     if motion is not None:
-        m = load_driving_motion(motion, cap.rig, d.fps, fps=motion_fps or None, start=start, count=count or None,
-                                split=split)
+        m = load_driving_motion(
+            motion, cap.rig, d.fps, fps=motion_fps or None, start=start, count=count or None, split=split
+        )
         if m.face is not None and m.face.shape[1] != d.face_dim:
             from gsavatar.data_schema import SchemaError
 
@@ -664,8 +704,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def go() -> None:
         claim_address(opts.host, opts.port, warn=lambda m: None)  # fail in seconds, before loading the run
-        v = viewer_from_run(args.run, args.motion, config=DriveConfig(mode=args.mode, device=args.device),
-                            options=opts)
+        v = viewer_from_run(args.run, args.motion, config=DriveConfig(mode=args.mode, device=args.device), options=opts)
         v.serve_forever()
 
     return run_reporting_errors(go)
@@ -679,6 +718,14 @@ def serve_drive_args(args) -> None:
     """``avatar-drive --view``: the viewer of :class:`gsavatar.drive.cli.DriveArgs` until Ctrl-C."""
     opts = ViewerOptions(port=args.port, host=args.host, start_paused=args.start_paused, sh0_only=args.sh0_only)
     claim_address(opts.host, opts.port, warn=lambda m: None)  # fail in seconds, before loading the run
-    v = viewer_from_run(args.run, args.motion, config=args.config(), options=opts, motion_fps=args.motion_fps,
-                        start=args.start, count=args.count, split=args.split)
+    v = viewer_from_run(
+        args.run,
+        args.motion,
+        config=args.config(),
+        options=opts,
+        motion_fps=args.motion_fps,
+        start=args.start,
+        count=args.count,
+        split=args.split,
+    )
     v.serve_forever()

@@ -92,19 +92,28 @@ def fit_body(args: FitBody) -> dict:
     names = sorted(cap.cameras)
     cams = [cap.cameras[n] for n in names]
     frames = list(range(cap.num_frames))
-    kp = read_keypoints(args.keypoints, names, frames, fmt, {n: (cap.cameras[n].width, cap.cameras[n].height) for n in names})
+    kp = read_keypoints(
+        args.keypoints, names, frames, fmt, {n: (cap.cameras[n].width, cap.cameras[n].height) for n in names}
+    )
     views_with = (kp[..., 2] > 0).any(-1)  # [F, C]
     if not views_with.any():
-        raise SchemaError(args.keypoints, "", f"no detections in any view of any of the {len(frames)} frames "
-                                              f"(format {fmt}; folders {names[:4]}...)")
+        raise SchemaError(
+            args.keypoints,
+            "",
+            f"no detections in any view of any of the {len(frames)} frames (format {fmt}; folders {names[:4]}...)",
+        )
     out = claim_output_dir(Path(args.out), "capture", args.force, register=True)
     t0 = time.perf_counter()
     tri = triangulate(kp, cams, args.fit.min_confidence, args.fit.threshold_px)
     t_tri = time.perf_counter() - t0
     seen = np.isfinite(tri.points[:, jm.keypoints]).all(-1).sum(1) >= MIN_POINTS  # [F]
     if not seen.any():
-        raise SchemaError(args.keypoints, "", f"the person is not found in enough views in any frame (needs {MIN_POINTS} "
-                                              "keypoints seen by >= 2 agreeing views)")
+        raise SchemaError(
+            args.keypoints,
+            "",
+            f"the person is not found in enough views in any frame (needs {MIN_POINTS} "
+            "keypoints seen by >= 2 agreeing views)",
+        )
     fp = _fingerprint(kp, args, jm)
     shard_dir = out / "fit" / "shards"
     results, reused, t_fit = [], 0, 0.0
@@ -138,27 +147,46 @@ def fit_body(args: FitBody) -> dict:
     det = (kp[:, :, jm.keypoints, 2] >= args.fit.min_confidence).transpose(0, 2, 1)  # [F, M, C]
     rep = res["reprojection_px"]
     report = {
-        "format": fmt, "keypoints": list(jm.names), "frames": len(frames), "views": names,
-        "reprojection_px": {"mean": float(np.nanmean(rep)), "median": float(np.nanmedian(rep)),
-                            "max": float(np.nanmax(rep)), "per_frame": [None if not np.isfinite(v) else float(v) for v in rep]},
-        "inliers": {"detections": int(det.sum()), "inlier_detections": int(inl.sum()),
-                    "fraction": float(inl.sum() / max(det.sum(), 1)),
-                    "per_keypoint": {n: float(inl[:, m].sum() / max(det[:, m].sum(), 1)) for m, n in enumerate(jm.names)}},
+        "format": fmt,
+        "keypoints": list(jm.names),
+        "frames": len(frames),
+        "views": names,
+        "reprojection_px": {
+            "mean": float(np.nanmean(rep)),
+            "median": float(np.nanmedian(rep)),
+            "max": float(np.nanmax(rep)),
+            "per_frame": [None if not np.isfinite(v) else float(v) for v in rep],
+        },
+        "inliers": {
+            "detections": int(det.sum()),
+            "inlier_detections": int(inl.sum()),
+            "fraction": float(inl.sum() / max(det.sum(), 1)),
+            "per_keypoint": {n: float(inl[:, m].sum() / max(det[:, m].sum(), 1)) for m, n in enumerate(jm.names)},
+        },
         "skipped_frames": [int(f) for f in np.flatnonzero(~seen)],
         "skipped_note": f"frames with fewer than {MIN_POINTS} triangulated keypoints: their poses come from the "
-                        "neighbouring frames through the smoothness and prior terms",
+        "neighbouring frames through the smoothness and prior terms",
         "views_without_detections": {n: int((~views_with[:, c]).sum()) for c, n in enumerate(names)},
-        "seconds": {"triangulation": round(t_tri, 3), "fit": round(t_fit, 3),
-                    "fit_per_frame": round(t_fit / max(len(frames) - reused * S, 1), 4)},
-        "shards": {"total": n_shards, "reused": reused}, "config": dataclasses.asdict(args.fit),
+        "seconds": {
+            "triangulation": round(t_tri, 3),
+            "fit": round(t_fit, 3),
+            "fit_per_frame": round(t_fit / max(len(frames) - reused * S, 1), 4),
+        },
+        "shards": {"total": n_shards, "reused": reused},
+        "config": dataclasses.asdict(args.fit),
     }
     overlay = out / "fit" / "overlay.png"
-    write_image(overlay, overlay_picture(cap, cams, names, kp, tri, jm, res, int(np.flatnonzero(seen)[len(np.flatnonzero(seen)) // 2])))
+    write_image(
+        overlay,
+        overlay_picture(cap, cams, names, kp, tri, jm, res, int(np.flatnonzero(seen)[len(np.flatnonzero(seen)) // 2])),
+    )
     report["overlay"] = str(overlay.relative_to(out))
     atomic_write_json(out / "fit" / "report.json", report)
-    print(f"fit-body: {len(frames)} frames, {len(names)} views, reprojection {report['reprojection_px']['mean']:.2f} px "
-          f"(median {report['reprojection_px']['median']:.2f}), {100 * report['inliers']['fraction']:.1f}% of the "
-          f"detections inliers, {len(report['skipped_frames'])} frames skipped -> {out}")
+    print(
+        f"fit-body: {len(frames)} frames, {len(names)} views, reprojection {report['reprojection_px']['mean']:.2f} px "
+        f"(median {report['reprojection_px']['median']:.2f}), {100 * report['inliers']['fraction']:.1f}% of the "
+        f"detections inliers, {len(report['skipped_frames'])} frames skipped -> {out}"
+    )
     return report
 
 
@@ -173,8 +201,13 @@ def overlay_picture(cap, cams, names, kp, tri, jm, res, frame: int, tile: int = 
     from gsavatar.utils.io import read_image
 
     with torch.no_grad():
-        J = pose_joints(cap.rig, *(torch.as_tensor(res[k][frame : frame + 1], dtype=torch.float64)
-                                   for k in ("pose", "root_rotation", "root_translation")))[0].numpy()
+        J = pose_joints(
+            cap.rig,
+            *(
+                torch.as_tensor(res[k][frame : frame + 1], dtype=torch.float64)
+                for k in ("pose", "root_rotation", "root_translation")
+            ),
+        )[0].numpy()
     parents = cap.rig.parents()
     Ks, Rs, Ts, ds = (np.stack([getattr(c, a) for c in cams]).astype(np.float64) for a in ("K", "R", "T", "dist"))
     pix, _ = project_world(J, Ks, Rs, Ts, ds)  # [J, C, 2]

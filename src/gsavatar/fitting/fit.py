@@ -119,9 +119,17 @@ def initial_root(rig, joints: np.ndarray, points: np.ndarray) -> tuple[np.ndarra
     return rot, trans
 
 
-def fit_sequence(rig, cameras: list, keypoints: np.ndarray, joint_map, points: np.ndarray, inliers: np.ndarray,
-                 config: FitConfig = FitConfig(), init: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-                 progress=None) -> dict[str, np.ndarray]:
+def fit_sequence(
+    rig,
+    cameras: list,
+    keypoints: np.ndarray,
+    joint_map,
+    points: np.ndarray,
+    inliers: np.ndarray,
+    config: FitConfig = FitConfig(),
+    init: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    progress=None,
+) -> dict[str, np.ndarray]:
     """Fit a shard of frames (module docstring).
 
     keypoints [F, C, K, 3]; joint_map: :class:`~gsavatar.fitting.keypoints.JointMap` (M used keypoints);
@@ -140,8 +148,9 @@ def fit_sequence(rig, cameras: list, keypoints: np.ndarray, joint_map, points: n
     w = torch.as_tensor(w, dtype=dt)
     X = torch.as_tensor(np.nan_to_num(points[:, kp_idx]), dtype=dt)
     wx = torch.as_tensor(np.isfinite(points[:, kp_idx]).all(-1), dtype=dt)  # [F, M]
-    Ks, Rs, Ts, ds = (torch.as_tensor(np.stack([getattr(cam, a) for cam in cameras]), dtype=dt)
-                      for a in ("K", "R", "T", "dist"))
+    Ks, Rs, Ts, ds = (
+        torch.as_tensor(np.stack([getattr(cam, a) for cam in cameras]), dtype=dt) for a in ("K", "R", "T", "dist")
+    )
     rt = RigTensors(rig, dtype=dt)
     if init is None:
         rr0, rt0 = initial_root(rig, jt_idx, points[:, kp_idx])
@@ -167,7 +176,11 @@ def fit_sequence(rig, cameras: list, keypoints: np.ndarray, joint_map, points: n
         if F >= 3:
             total = total + c.w_smooth * f2 * ((J[2:] - 2 * J[1:-1] + J[:-2]) ** 2).sum(-1).mean()
         if with_pose:
-            total = total + c.w_pose * (pose ** 2).sum(-1).mean() + c.w_limit * (torch.relu(pose.abs() - c.limit) ** 2).sum(-1).mean()
+            total = (
+                total
+                + c.w_pose * (pose**2).sum(-1).mean()
+                + c.w_limit * (torch.relu(pose.abs() - c.limit) ** 2).sum(-1).mean()
+            )
             if F >= 3:
                 total = total + c.w_smooth_pose * ((pose[2:] - 2 * pose[1:-1] + pose[:-2]) ** 2).sum(-1).mean()
         return total
@@ -191,6 +204,12 @@ def fit_sequence(rig, cameras: list, keypoints: np.ndarray, joint_map, points: n
         err = ((pix - uv) ** 2).sum(-1).sqrt()  # [F, C, M]
         used = w > 0
         cnt = used.sum((1, 2))
-        rep = torch.where(cnt > 0, (err * used).sum((1, 2)) / cnt.clamp_min(1), torch.full_like(cnt, float("nan"), dtype=dt))
-    return {"pose": pose.detach().numpy().astype(np.float32), "root_rotation": rr.detach().numpy().astype(np.float32),
-            "root_translation": tr.detach().numpy().astype(np.float32), "reprojection_px": rep.numpy()}
+        rep = torch.where(
+            cnt > 0, (err * used).sum((1, 2)) / cnt.clamp_min(1), torch.full_like(cnt, float("nan"), dtype=dt)
+        )
+    return {
+        "pose": pose.detach().numpy().astype(np.float32),
+        "root_rotation": rr.detach().numpy().astype(np.float32),
+        "root_translation": tr.detach().numpy().astype(np.float32),
+        "reprojection_px": rep.numpy(),
+    }

@@ -58,8 +58,11 @@ def load_joint_map(fmt: str, rig, path: str | Path | None = None) -> JointMap:
     """
     src = Path(path) if path is not None else None
     try:
-        text = src.read_text() if src is not None else resources.files("gsavatar.fitting").joinpath(
-            "maps", f"{fmt}.json").read_text()
+        text = (
+            src.read_text()
+            if src is not None
+            else resources.files("gsavatar.fitting").joinpath("maps", f"{fmt}.json").read_text()
+        )
         obj = json.loads(text)
     except FileNotFoundError:
         raise SchemaError(src or fmt, "", "joint map file not found") from None
@@ -69,8 +72,11 @@ def load_joint_map(fmt: str, rig, path: str | Path | None = None) -> JointMap:
     if not isinstance(obj, dict) or not isinstance(obj.get("names"), list) or not isinstance(obj.get("joints"), dict):
         raise SchemaError(where, "", "needs 'names' (list) and 'joints' (object: keypoint -> [rig joints])")
     if obj.get("format", fmt) != fmt or len(obj["names"]) != FORMATS[fmt]:
-        raise SchemaError(where, "names", f"is a map for {obj.get('format')!r} with {len(obj['names'])} keypoints; "
-                                          f"{fmt} has {FORMATS[fmt]}")
+        raise SchemaError(
+            where,
+            "names",
+            f"is a map for {obj.get('format')!r} with {len(obj['names'])} keypoints; {fmt} has {FORMATS[fmt]}",
+        )
     rig_names = [j.name for j in rig.joints]
     kp, jt, names = [], [], []
     for name, cands in obj["joints"].items():
@@ -84,8 +90,11 @@ def load_joint_map(fmt: str, rig, path: str | Path | None = None) -> JointMap:
             jt.append(rig_names.index(hit))
             names.append(name)
     if len(kp) < 4:
-        raise SchemaError(where, "joints", f"only {len(kp)} keypoints match joints of this rig (it has "
-                                           f"{rig_names[:6]}...); pass a --joint-map for it")
+        raise SchemaError(
+            where,
+            "joints",
+            f"only {len(kp)} keypoints match joints of this rig (it has {rig_names[:6]}...); pass a --joint-map for it",
+        )
     return JointMap(fmt, np.asarray(kp, np.int64), np.asarray(jt, np.int64), tuple(names))
 
 
@@ -174,8 +183,13 @@ def detect_format(root: str | Path) -> KeypointFormat:
     return "body25" if isinstance(obj, dict) and "people" in obj else "coco_wholebody"
 
 
-def read_keypoints(root: str | Path, cameras: list[str], frames: list[int], fmt: KeypointFormat,
-                   sizes: dict[str, tuple[int, int]] | None = None) -> np.ndarray:
+def read_keypoints(
+    root: str | Path,
+    cameras: list[str],
+    frames: list[int],
+    fmt: KeypointFormat,
+    sizes: dict[str, tuple[int, int]] | None = None,
+) -> np.ndarray:
     """Every camera's keypoints of ``frames`` -> [F, C, K, 3] (x, y, confidence; missing file / nobody: 0).
 
     ``sizes``: camera -> (width, height); detections outside the image get confidence 0. Unknown camera
@@ -187,7 +201,9 @@ def read_keypoints(root: str | Path, cameras: list[str], frames: list[int], fmt:
     known = set(cameras)
     extra = sorted(p.name for p in root.iterdir() if p.is_dir() and p.name not in known)
     if extra:
-        raise SchemaError(root, extra[0], f"keypoint folder for a camera the capture does not have ({sorted(known)[:6]}...)")
+        raise SchemaError(
+            root, extra[0], f"keypoint folder for a camera the capture does not have ({sorted(known)[:6]}...)"
+        )
     K = FORMATS[fmt]
     out = np.zeros((len(frames), len(cameras), K, 3))
     row = {f: i for i, f in enumerate(frames)}

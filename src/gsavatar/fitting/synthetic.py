@@ -12,8 +12,15 @@ from gsavatar.fitting.keypoints import FORMATS, JointMap
 from gsavatar.fitting.triangulate import project_world
 
 
-def synthetic_keypoints(joints: np.ndarray, cameras: list, joint_map: JointMap, noise_px: float = 2.0,
-                        outlier_fraction: float = 0.1, drop_fraction: float = 0.2, seed: int = 0) -> np.ndarray:
+def synthetic_keypoints(
+    joints: np.ndarray,
+    cameras: list,
+    joint_map: JointMap,
+    noise_px: float = 2.0,
+    outlier_fraction: float = 0.1,
+    drop_fraction: float = 0.2,
+    seed: int = 0,
+) -> np.ndarray:
     """joints [F, J, 3] world -> keypoints [F, C, K, 3] of ``joint_map.format``: the mapped joints projected
     with Gaussian noise of ``noise_px`` (per axis), ``outlier_fraction`` of the detections moved to a uniform
     random spot in the image (confidence kept high: a detector's confident mistake), ``drop_fraction``
@@ -47,5 +54,7 @@ def write_openpose(root: str | Path, keypoints: np.ndarray, cameras: list[str], 
         (root / cam).mkdir(parents=True, exist_ok=True)
         for i, f in enumerate(frames):
             a = keypoints[i, c]
-            people = [] if not (a[:, 2] > 0).any() else [{"person_id": [-1], "pose_keypoints_2d": a.reshape(-1).tolist()}]
+            people = (
+                [] if not (a[:, 2] > 0).any() else [{"person_id": [-1], "pose_keypoints_2d": a.reshape(-1).tolist()}]
+            )
             (root / cam / f"{f:08d}_keypoints.json").write_text(json.dumps({"version": 1.3, "people": people}))

@@ -53,7 +53,9 @@ def dlt(xy: np.ndarray, w: np.ndarray, P: np.ndarray) -> np.ndarray:
     return out
 
 
-def project_world(X: np.ndarray, Ks: np.ndarray, Rs: np.ndarray, Ts: np.ndarray, dists: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def project_world(
+    X: np.ndarray, Ks: np.ndarray, Rs: np.ndarray, Ts: np.ndarray, dists: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """World points [N, 3] into every camera -> (pixels [N, C, 2], depth [N, C])."""
     from gsavatar.geometry.camera import distort
 
@@ -70,8 +72,9 @@ def project_world(X: np.ndarray, Ks: np.ndarray, Rs: np.ndarray, Ts: np.ndarray,
     return out, z
 
 
-def triangulate(keypoints: np.ndarray, cameras: list, min_confidence: float = 0.1,
-                threshold_px: float = 15.0) -> Triangulation:
+def triangulate(
+    keypoints: np.ndarray, cameras: list, min_confidence: float = 0.1, threshold_px: float = 15.0
+) -> Triangulation:
     """Robust triangulation of every keypoint of every frame (module docstring).
 
     keypoints [F, C, K, 3] pixels + confidence (as :func:`gsavatar.fitting.keypoints.read_keypoints`),

@@ -34,7 +34,9 @@ def undistort(xd: np.ndarray, dist: np.ndarray, iters: int = 10) -> np.ndarray:
     return xn
 
 
-def project(points: np.ndarray, K: np.ndarray, R: np.ndarray, T: np.ndarray, dist: np.ndarray | None = None) -> Projection:
+def project(
+    points: np.ndarray, K: np.ndarray, R: np.ndarray, T: np.ndarray, dist: np.ndarray | None = None
+) -> Projection:
     """Project world points to pixels. points [N,3]; K [3,3]; R [3,3], T [3] cam_from_world."""
     pc = points @ R.T + T
     z = pc[:, 2]
@@ -46,8 +48,9 @@ def project(points: np.ndarray, K: np.ndarray, R: np.ndarray, T: np.ndarray, dis
     return Projection(uv, z)
 
 
-def pixel_rays(K: np.ndarray, R: np.ndarray, T: np.ndarray, width: int, height: int,
-               dist: np.ndarray | None = None) -> np.ndarray:
+def pixel_rays(
+    K: np.ndarray, R: np.ndarray, T: np.ndarray, width: int, height: int, dist: np.ndarray | None = None
+) -> np.ndarray:
     """World-space rays (origin, unit dir) through every pixel centre. -> [H, W, 6] float32."""
     ys, xs = np.mgrid[0:height, 0:width].astype(np.float64)
     pix = np.stack([xs.ravel(), ys.ravel()], 1)
@@ -62,7 +65,9 @@ def pixel_rays(K: np.ndarray, R: np.ndarray, T: np.ndarray, width: int, height: 
     return rays.reshape(height, width, 6).astype(np.float32)
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 1.0, 0.0])) -> tuple[np.ndarray, np.ndarray]:
+def look_at(
+    eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 1.0, 0.0])
+) -> tuple[np.ndarray, np.ndarray]:
     """``cam_from_world`` (R, T) for an OpenCV camera at ``eye`` looking at ``target`` (+y down in image)."""
     f = target - eye
     f = f / np.linalg.norm(f)

@@ -66,18 +66,25 @@ class KinematicChain:
         as_np = lambda a: a.detach().cpu().numpy() if isinstance(a, Tensor) else np.asarray(a)  # noqa: E731
         self._heads = as_np(heads).astype(np.float32).reshape(-1, 3)
         self._parents = as_np(parents).astype(np.int64).reshape(-1)
-        joint, axis, size = (as_np(param_joint).astype(np.int64).reshape(-1),
-                             as_np(param_axis).astype(np.float64).reshape(-1, 3), as_np(param_size).astype(np.int64).reshape(-1))
+        joint, axis, size = (
+            as_np(param_joint).astype(np.int64).reshape(-1),
+            as_np(param_axis).astype(np.float64).reshape(-1, 3),
+            as_np(param_size).astype(np.int64).reshape(-1),
+        )
         J = len(self._heads)
         if len(self._parents) != J or not (len(joint) == len(axis) == len(size)):
-            raise ValueError(f"kinematic chain: {J} heads, {len(self._parents)} parents, {len(joint)}/{len(axis)}/"
-                             f"{len(size)} parameter joints/axes/sizes: lengths must agree")
+            raise ValueError(
+                f"kinematic chain: {J} heads, {len(self._parents)} parents, {len(joint)}/{len(axis)}/"
+                f"{len(size)} parameter joints/axes/sizes: lengths must agree"
+            )
         if np.any(self._parents >= np.arange(J)) or np.any(self._parents < -1):
             raise ValueError("kinematic chain: parents must come before their children (-1 for a root)")
         if np.any((joint < 0) | (joint >= J)) or not np.all(np.isin(size, (1, 3))):
             raise ValueError("kinematic chain: parameter joints must index the joints and sizes be 1 or 3")
-        self.params = [ChainParam(str(int(j)), "euler" if s == 1 else "axis_angle", tuple(a), int(s))
-                       for j, a, s in zip(joint, axis, size)]
+        self.params = [
+            ChainParam(str(int(j)), "euler" if s == 1 else "axis_angle", tuple(a), int(s))
+            for j, a, s in zip(joint, axis, size)
+        ]
         self.num_joints, self.pose_dim = J, int(size.sum())
 
     @classmethod
@@ -88,9 +95,13 @@ class KinematicChain:
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(heads, parents, param_joint, param_axis, param_size)``, the constructor's arguments."""
-        return (self._heads.copy(), self._parents.copy(), np.array([int(p.joint) for p in self.params], np.int64),
-                np.array([p.axis for p in self.params], np.float32).reshape(-1, 3),
-                np.array([p.size for p in self.params], np.int64))
+        return (
+            self._heads.copy(),
+            self._parents.copy(),
+            np.array([int(p.joint) for p in self.params], np.int64),
+            np.array([p.axis for p in self.params], np.float32).reshape(-1, 3),
+            np.array([p.size for p in self.params], np.int64),
+        )
 
     def heads(self) -> np.ndarray:
         return self._heads
@@ -141,7 +152,11 @@ def pose_to_local_rotations(pose: Tensor, rig: Rig | RigTensors) -> Tensor:
     B = pose.shape[0]
     # All euler factors at once, then a short loop over parameters in listed order to
     # multiply them into their joint (P is ~100; the heavy work is batched over B).
-    eul = axis_angle_to_matrix(rt.euler_axes.to(pose.dtype)[None] * pose[:, rt.euler_slots, None]) if len(rt.euler_slots) else None
+    eul = (
+        axis_angle_to_matrix(rt.euler_axes.to(pose.dtype)[None] * pose[:, rt.euler_slots, None])
+        if len(rt.euler_slots)
+        else None
+    )
     local = [None] * rt.num_joints
     k = 0
     for j, kind, slot in rt.order:

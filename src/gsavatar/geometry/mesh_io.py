@@ -80,8 +80,11 @@ def read_obj(path: str | Path) -> ObjMesh:
                 except ValueError:
                     raise SchemaError(path, f"line {lineno}", f"f: bad face {line.strip()!r}") from None
                 if any(i == 0 or abs(i) > _MAX_INDEX for i in vi + ti):
-                    raise SchemaError(path, f"line {lineno}", f"f: index out of range in {line.strip()!r} (OBJ indices "
-                                                              "start at 1, negatives count back)")
+                    raise SchemaError(
+                        path,
+                        f"line {lineno}",
+                        f"f: index out of range in {line.strip()!r} (OBJ indices start at 1, negatives count back)",
+                    )
                 if len(ti) != len(vi):
                     has_uv = False
                 for k in range(1, len(vi) - 1):
@@ -110,8 +113,13 @@ def _resolve(path: Path, idx: np.ndarray, n: int, lines: list[int], what: str) -
     return out
 
 
-def write_obj(path: str | Path, vertices: np.ndarray, faces: np.ndarray,
-              uvs: np.ndarray | None = None, face_uvs: np.ndarray | None = None) -> None:
+def write_obj(
+    path: str | Path,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    uvs: np.ndarray | None = None,
+    face_uvs: np.ndarray | None = None,
+) -> None:
     """Write a triangle OBJ atomically. vertices [V,3], faces [F,3] (0-based), uvs [T,2], face_uvs [F,3]."""
     from gsavatar.utils.io import atomic_write_text
 

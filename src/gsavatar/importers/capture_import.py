@@ -82,12 +82,16 @@ def select_cameras(src: ImportedSource, wanted: tuple[str, ...], what: str) -> l
     for w in wanted:
         name = w if w in src.cameras else by_source.get(w)
         if name is None:
-            raise ValueError(f"{what}: unknown camera {w!r}; the calibration has {', '.join(src.source_names.values())}")
+            raise ValueError(
+                f"{what}: unknown camera {w!r}; the calibration has {', '.join(src.source_names.values())}"
+            )
         out.append(name)
     return [c for c in src.cameras if c in out]
 
 
-def plan_views(src: ImportedSource, num_fit_frames: int, opts: ImportOptions) -> tuple[list[str], list[int], dict[int, list[str]]]:
+def plan_views(
+    src: ImportedSource, num_fit_frames: int, opts: ImportOptions
+) -> tuple[list[str], list[int], dict[int, list[str]]]:
     """(cameras, kept source frames, dropped source frame -> cameras whose view is lost)."""
     cams = select_cameras(src, opts.cameras, "--cameras") if opts.cameras else list(src.cameras)
     frames = list(range(num_fit_frames))
@@ -119,8 +123,10 @@ def make_splits(src: ImportedSource, cams: list[str], kept: list[int], opts: Imp
     train_cams = [c for c in cams if c not in test_cams]
     train_idx = [i for i in range(len(kept)) if i not in set(test_idx)]
     if not test_idx or not train_idx or not train_cams:
-        raise ValueError(f"the split leaves {len(train_cams)} train cameras, {len(train_idx)} train frames and "
-                         f"{len(test_idx)} test frames of {len(kept)} imported; each must be at least one")
+        raise ValueError(
+            f"the split leaves {len(train_cams)} train cameras, {len(train_idx)} train frames and "
+            f"{len(test_idx)} test frames of {len(kept)} imported; each must be at least one"
+        )
     return {"train": Split(train_idx, train_cams), "test": Split(test_idx, test_cams)}
 
 
@@ -134,8 +140,15 @@ def convert_mask(src_file: Path, dst_file: Path, width: int, height: int) -> Non
     write_image(dst_file, (raw > MASK_THRESHOLD).astype(np.float32))
 
 
-def import_capture(src: ImportedSource, model: SmplxModel, out: str | Path, opts: ImportOptions = ImportOptions(), *,
-                   uvs: tuple[np.ndarray, np.ndarray] | None = None, check: bool = True) -> ImportReport:
+def import_capture(
+    src: ImportedSource,
+    model: SmplxModel,
+    out: str | Path,
+    opts: ImportOptions = ImportOptions(),
+    *,
+    uvs: tuple[np.ndarray, np.ndarray] | None = None,
+    check: bool = True,
+) -> ImportReport:
     """Write ``src`` as capture format v1 into ``out`` (claimed by the caller); validate it unless not ``check``."""
     out = Path(out)
     params = load_smplx_params(check_regular_file(src.smplx_params, "SMPL-X fit"))
@@ -145,8 +158,12 @@ def import_capture(src: ImportedSource, model: SmplxModel, out: str | Path, opts
     for c, f in views:  # every file before the first write: a wrong layout fails fast, naming a file
         for p in (src.image_path(c, f), src.mask_path(c, f)):
             if not p.is_file():
-                raise SchemaError(p, "", f"missing (camera {src.source_names[c]!r}, frame {f}) and not listed in "
-                                         "missing_img_files.txt; choose frames with --frames or cameras with --cameras")
+                raise SchemaError(
+                    p,
+                    "",
+                    f"missing (camera {src.source_names[c]!r}, frame {f}) and not listed in "
+                    "missing_img_files.txt; choose frames with --frames or cameras with --cameras",
+                )
     index = {f: i for i, f in enumerate(kept)}  # source frame -> capture frame
     for c, f in views:
         i, cam = index[f], src.cameras[c]
@@ -155,10 +172,20 @@ def import_capture(src: ImportedSource, model: SmplxModel, out: str | Path, opts
     write_smplx_capture_body(out, model, params.frames(np.array(kept)), uvs=uvs, flat_hand_mean=opts.flat_hand_mean)
     write_capture_metadata(out, src.fps, len(kept), {c: src.cameras[c] for c in cams}, splits)
     names = {c: src.source_names[c] for c in cams}
-    atomic_write_json(out / "import.json", {
-        "format": "gsavatar-import", "version": 1, "layout": src.layout, "source": str(src.root),
-        "cameras": names, "source_frames": kept, "dropped_frames": {str(f): v for f, v in dropped.items()},
-        "images": "copy" if opts.copy else "symlink", "mask_threshold": MASK_THRESHOLD})
+    atomic_write_json(
+        out / "import.json",
+        {
+            "format": "gsavatar-import",
+            "version": 1,
+            "layout": src.layout,
+            "source": str(src.root),
+            "cameras": names,
+            "source_frames": kept,
+            "dropped_frames": {str(f): v for f, v in dropped.items()},
+            "images": "copy" if opts.copy else "symlink",
+            "mask_threshold": MASK_THRESHOLD,
+        },
+    )
     if check:
         check_images(load_capture(out))
     return ImportReport(kept, dropped, names, splits)

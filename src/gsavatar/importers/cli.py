@@ -46,12 +46,18 @@ class Import(ImportOptions):
             raise SchemaError(self.src, "", "source folder not found")
         if not layout.detect(self.src):
             others = [n for n, lay in LAYOUTS.items() if lay.detect(self.src)]
-            raise SchemaError(self.src, "", f"not a {self.layout} capture (its calibration file is missing)"
-                              + (f"; it looks like --layout {others[0]}" if others else ""))
+            raise SchemaError(
+                self.src,
+                "",
+                f"not a {self.layout} capture (its calibration file is missing)"
+                + (f"; it looks like --layout {others[0]}" if others else ""),
+            )
         src = layout.read(self.src)
         model = load_smplx_model(self.smplx_model)
         uvs = None if self.smplx_uvs is None else load_smplx_uvs(self.smplx_uvs, model)
         claim_output_dir(self.out, "capture", self.force_out, "--force-out", register=True)
         rep = import_capture(src, model, self.out, self, uvs=uvs)
-        print(f"capture written to {self.out}: {len(rep.cameras)} cameras, {len(rep.source_frames)} frames "
-              f"({len(rep.dropped)} dropped for lost views), images {'copied' if self.copy else 'linked'}")
+        print(
+            f"capture written to {self.out}: {len(rep.cameras)} cameras, {len(rep.source_frames)} frames "
+            f"({len(rep.dropped)} dropped for lost views), images {'copied' if self.copy else 'linked'}"
+        )

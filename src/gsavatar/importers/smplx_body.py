@@ -56,23 +56,30 @@ def shaped_vertices(model: SmplxModel, betas: np.ndarray) -> np.ndarray:
     """``v_template + shapedirs[..., :N] @ betas``.  betas [N], N <= model.num_betas -> [V, 3] float64, metres."""
     betas = np.asarray(betas, dtype=np.float64).reshape(-1)
     if len(betas) > model.num_betas:
-        raise SchemaError(model.path, "shapedirs", f"the fit has {len(betas)} betas, the model {model.num_betas} shape "
-                          "columns (a 10-beta SMPL-X v1.0 model with a 300-beta fit?)")
+        raise SchemaError(
+            model.path,
+            "shapedirs",
+            f"the fit has {len(betas)} betas, the model {model.num_betas} shape "
+            "columns (a 10-beta SMPL-X v1.0 model with a 300-beta fit?)",
+        )
     return model.v_template.astype(np.float64) + model.shapedirs[:, :, : len(betas)].astype(np.float64) @ betas
 
 
 def smplx_rig(model: SmplxModel, heads: np.ndarray) -> Rig:
     """The SMPL-X rig with rest joint positions ``heads`` [55, 3] (metres)."""
-    joints = [Joint(n, None if p < 0 else SMPLX_JOINT_NAMES[p], tuple(float(x) for x in h))
-              for n, p, h in zip(SMPLX_JOINT_NAMES, model.parents.tolist(), np.asarray(heads))]
+    joints = [
+        Joint(n, None if p < 0 else SMPLX_JOINT_NAMES[p], tuple(float(x) for x in h))
+        for n, p, h in zip(SMPLX_JOINT_NAMES, model.parents.tolist(), np.asarray(heads))
+    ]
     params = [PoseParam(param_name(j.name), j.name, "axis_angle") for j in joints[1:]]
     groups = {g: [param_name(n) for n in SMPLX_JOINT_NAMES[1:] if SMPLX_JOINT_GROUPS[n] == g] for g in BODY_GROUPS}
     rig = Rig(joints, params, groups)
     return rig_from_json(rig.to_json(), "smplx rig")  # the reader's checks: parents first, every param grouped
 
 
-def smplx_template(model: SmplxModel, betas: np.ndarray, *, uvs: tuple[np.ndarray, np.ndarray] | None = None,
-                   top_k: int = SKIN_TOP_K) -> SmplxBody:
+def smplx_template(
+    model: SmplxModel, betas: np.ndarray, *, uvs: tuple[np.ndarray, np.ndarray] | None = None, top_k: int = SKIN_TOP_K
+) -> SmplxBody:
     """The body of shape ``betas`` [N] as our template and rig.
 
     uvs: (uvs [T', 2], face_uvs [T, 3]) from :func:`~gsavatar.importers.smplx_model.load_smplx_uvs`; default: the
@@ -85,34 +92,53 @@ def smplx_template(model: SmplxModel, betas: np.ndarray, *, uvs: tuple[np.ndarra
     if uvs is None and model.uvs is not None:
         uvs = (model.uvs, model.face_uvs)
     idx, w = topk_skin_weights(model.weights, top_k)
-    t = Template(verts.astype(np.float32), model.faces.copy(), idx, w,
-                 None if uvs is None else uvs[0], None if uvs is None else uvs[1])
+    t = Template(
+        verts.astype(np.float32),
+        model.faces.copy(),
+        idx,
+        w,
+        None if uvs is None else uvs[0],
+        None if uvs is None else uvs[1],
+    )
     validate_template(t, len(SMPLX_JOINT_NAMES), Path("template"))
     return SmplxBody(t, smplx_rig(model, heads))
 
 
-def smplx_motion(params: SmplxParams, model: SmplxModel, *, flat_hand_mean: bool = True,
-                 face: FaceEmbedding = "expression_jaw") -> Motion:
+def smplx_motion(
+    params: SmplxParams, model: SmplxModel, *, flat_hand_mean: bool = True, face: FaceEmbedding = "expression_jaw"
+) -> Motion:
     """Our motion (pose in rig parameter order, root rotation/translation, face embedding) from a fit.
 
     flat_hand_mean: as the fit's ``smplx.SMPLX(flat_hand_mean=...)``; False adds the model's mean hand pose.
     """
     pose = full_pose(params, model, flat_hand_mean)  # [F, 55, 3]
     F = params.num_frames
-    emb = {"expression_jaw": np.concatenate([params.expression, params.jaw_pose], axis=1),
-           "expression": params.expression, "none": None}
+    emb = {
+        "expression_jaw": np.concatenate([params.expression, params.jaw_pose], axis=1),
+        "expression": params.expression,
+        "none": None,
+    }
     if face not in emb:
         raise ValueError(f"face must be one of {sorted(emb)}, got {face!r}")
     e = emb[face]
-    return Motion(pose=pose[:, 1:].reshape(F, -1).astype(np.float32),
-                  root_rotation=params.global_orient.astype(np.float32),
-                  root_translation=params.transl.astype(np.float32),
-                  face=None if e is None or e.shape[1] == 0 else e.astype(np.float32))
+    return Motion(
+        pose=pose[:, 1:].reshape(F, -1).astype(np.float32),
+        root_rotation=params.global_orient.astype(np.float32),
+        root_translation=params.transl.astype(np.float32),
+        face=None if e is None or e.shape[1] == 0 else e.astype(np.float32),
+    )
 
 
-def write_smplx_capture_body(out_dir: str | Path, model: SmplxModel, params: SmplxParams, *,
-                             uvs: tuple[np.ndarray, np.ndarray] | None = None, flat_hand_mean: bool = True,
-                             face: FaceEmbedding = "expression_jaw", top_k: int = SKIN_TOP_K) -> ImportedBody:
+def write_smplx_capture_body(
+    out_dir: str | Path,
+    model: SmplxModel,
+    params: SmplxParams,
+    *,
+    uvs: tuple[np.ndarray, np.ndarray] | None = None,
+    flat_hand_mean: bool = True,
+    face: FaceEmbedding = "expression_jaw",
+    top_k: int = SKIN_TOP_K,
+) -> ImportedBody:
     """Write ``template/mesh.obj``, ``template/rig.json``, ``template/skin_weights.npz`` and ``motion.npz`` of a
     capture (atomic writes); capture.json, calibration, images and splits are the layout importer's."""
     out = Path(out_dir)

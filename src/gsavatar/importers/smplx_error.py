@@ -52,8 +52,16 @@ def vertex_groups(model: SmplxModel) -> np.ndarray:
     return of_joint[np.argmax(model.weights, axis=1)]
 
 
-def smplx_surface_chunks(model: SmplxModel, params: SmplxParams, *, posedirs: bool = True, expression: bool = True,
-                         weights: np.ndarray | None = None, flat_hand_mean: bool = True, chunk: int = 16):
+def smplx_surface_chunks(
+    model: SmplxModel,
+    params: SmplxParams,
+    *,
+    posedirs: bool = True,
+    expression: bool = True,
+    weights: np.ndarray | None = None,
+    flat_hand_mean: bool = True,
+    chunk: int = 16,
+):
     """SMPL-X posed vertices, frame chunk by frame chunk: yields (frame slice, vertices [B, V, 3] float64 metres).
 
     posedirs / expression: include the pose-corrective / expression blend shapes. weights: [V, 55] skinning
@@ -103,12 +111,15 @@ def _difference(model: SmplxModel, params: SmplxParams, a: dict, b: dict, flat_h
     total = torch.zeros(G, dtype=torch.float64)
     peak = torch.zeros(G, dtype=torch.float64)
     count = torch.bincount(groups, minlength=G).to(torch.float64)
-    for (sl, va), (_, vb) in zip(smplx_surface_chunks(model, params, flat_hand_mean=flat_hand_mean, **a),
-                                 smplx_surface_chunks(model, params, flat_hand_mean=flat_hand_mean, **b)):
+    for (sl, va), (_, vb) in zip(
+        smplx_surface_chunks(model, params, flat_hand_mean=flat_hand_mean, **a),
+        smplx_surface_chunks(model, params, flat_hand_mean=flat_hand_mean, **b),
+    ):
         d = torch.linalg.norm(va - vb, dim=-1) * 1000.0  # [B, V] mm
         total += torch.zeros(G, dtype=torch.float64).index_add_(0, groups, d.sum(0))
-        peak = torch.maximum(peak, torch.zeros(G, dtype=torch.float64).scatter_reduce_(
-            0, groups, d.max(0).values, reduce="amax"))
+        peak = torch.maximum(
+            peak, torch.zeros(G, dtype=torch.float64).scatter_reduce_(0, groups, d.max(0).values, reduce="amax")
+        )
     F = params.num_frames
     mean = {g: float(total[i] / (count[i] * F)) if count[i] else 0.0 for i, g in enumerate(BODY_GROUPS)}
     return SurfaceError(mean, {g: float(peak[i]) for i, g in enumerate(BODY_GROUPS)}, F)
@@ -116,21 +127,29 @@ def _difference(model: SmplxModel, params: SmplxParams, a: dict, b: dict, flat_h
 
 def posedirs_error(model: SmplxModel, params: SmplxParams, *, flat_hand_mean: bool = True) -> SurfaceError:
     """Distance between SMPL-X with and without pose correctives (no expression, dense weights, both)."""
-    return _difference(model, params, dict(posedirs=True, expression=False),
-                       dict(posedirs=False, expression=False), flat_hand_mean)
+    return _difference(
+        model, params, dict(posedirs=True, expression=False), dict(posedirs=False, expression=False), flat_hand_mean
+    )
 
 
 def expression_error(model: SmplxModel, params: SmplxParams, *, flat_hand_mean: bool = True) -> SurfaceError:
     """Distance between SMPL-X with and without expression blend shapes (no pose correctives, dense weights)."""
-    return _difference(model, params, dict(posedirs=False, expression=True),
-                       dict(posedirs=False, expression=False), flat_hand_mean)
+    return _difference(
+        model, params, dict(posedirs=False, expression=True), dict(posedirs=False, expression=False), flat_hand_mean
+    )
 
 
-def topk_error(model: SmplxModel, params: SmplxParams, *, top_k: int = SKIN_TOP_K,
-               flat_hand_mean: bool = True) -> SurfaceError:
+def topk_error(
+    model: SmplxModel, params: SmplxParams, *, top_k: int = SKIN_TOP_K, flat_hand_mean: bool = True
+) -> SurfaceError:
     """Distance between SMPL-X skinned with its dense weights and with the template's top-K (no correctives)."""
     idx, w = topk_skin_weights(model.weights, top_k)
     dense = np.zeros_like(model.weights, dtype=np.float64)
     np.add.at(dense, (np.repeat(np.arange(len(idx)), idx.shape[1]), idx.ravel()), w.ravel())
-    return _difference(model, params, dict(posedirs=False, expression=False),
-                       dict(posedirs=False, expression=False, weights=dense), flat_hand_mean)
+    return _difference(
+        model,
+        params,
+        dict(posedirs=False, expression=False),
+        dict(posedirs=False, expression=False, weights=dense),
+        flat_hand_mean,
+    )

@@ -41,24 +41,121 @@ from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.io import read_npz
 
 SMPLX_JOINT_NAMES: tuple[str, ...] = (
-    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle", "right_ankle",
-    "spine3", "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head", "left_shoulder",
-    "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
-    "jaw", "left_eye", "right_eye",
-    "left_index1", "left_index2", "left_index3", "left_middle1", "left_middle2", "left_middle3",
-    "left_pinky1", "left_pinky2", "left_pinky3", "left_ring1", "left_ring2", "left_ring3",
-    "left_thumb1", "left_thumb2", "left_thumb3",
-    "right_index1", "right_index2", "right_index3", "right_middle1", "right_middle2", "right_middle3",
-    "right_pinky1", "right_pinky2", "right_pinky3", "right_ring1", "right_ring2", "right_ring3",
-    "right_thumb1", "right_thumb2", "right_thumb3",
+    "pelvis",
+    "left_hip",
+    "right_hip",
+    "spine1",
+    "left_knee",
+    "right_knee",
+    "spine2",
+    "left_ankle",
+    "right_ankle",
+    "spine3",
+    "left_foot",
+    "right_foot",
+    "neck",
+    "left_collar",
+    "right_collar",
+    "head",
+    "left_shoulder",
+    "right_shoulder",
+    "left_elbow",
+    "right_elbow",
+    "left_wrist",
+    "right_wrist",
+    "jaw",
+    "left_eye",
+    "right_eye",
+    "left_index1",
+    "left_index2",
+    "left_index3",
+    "left_middle1",
+    "left_middle2",
+    "left_middle3",
+    "left_pinky1",
+    "left_pinky2",
+    "left_pinky3",
+    "left_ring1",
+    "left_ring2",
+    "left_ring3",
+    "left_thumb1",
+    "left_thumb2",
+    "left_thumb3",
+    "right_index1",
+    "right_index2",
+    "right_index3",
+    "right_middle1",
+    "right_middle2",
+    "right_middle3",
+    "right_pinky1",
+    "right_pinky2",
+    "right_pinky3",
+    "right_ring1",
+    "right_ring2",
+    "right_ring3",
+    "right_thumb1",
+    "right_thumb2",
+    "right_thumb3",
 )
 """SMPL-X's 55 joints in model order (``smplx`` calls the eyes ``left_eye_smplhf``/``right_eye_smplhf``). The
 full pose ``[global_orient, body_pose (21), jaw, leye, reye, left hand (15), right hand (15)]`` follows it."""
 
 SMPLX_PARENTS: tuple[int, ...] = (
-    -1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 15, 15, 15,
-    20, 25, 26, 20, 28, 29, 20, 31, 32, 20, 34, 35, 20, 37, 38,
-    21, 40, 41, 21, 43, 44, 21, 46, 47, 21, 49, 50, 21, 52, 53,
+    -1,
+    0,
+    0,
+    0,
+    1,
+    2,
+    3,
+    4,
+    5,
+    6,
+    7,
+    8,
+    9,
+    9,
+    9,
+    12,
+    13,
+    14,
+    16,
+    17,
+    18,
+    19,
+    15,
+    15,
+    15,
+    20,
+    25,
+    26,
+    20,
+    28,
+    29,
+    20,
+    31,
+    32,
+    20,
+    34,
+    35,
+    20,
+    37,
+    38,
+    21,
+    40,
+    41,
+    21,
+    43,
+    44,
+    21,
+    46,
+    47,
+    21,
+    49,
+    50,
+    21,
+    52,
+    53,
 )
 """SMPL-X's kinematic tree (parent index per joint). A model's ``kintree_table`` must match it: the joint names
 and body-part groups are only right for this tree."""
@@ -150,8 +247,21 @@ def _shape(a: np.ndarray, want: tuple[int | None, ...], path: Path, key: str, wh
         raise SchemaError(path, key, f"expected shape [{shown}]{why}, got {list(a.shape)}")
 
 
-KEYS = ("v_template", "f", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table",
-        "hands_componentsl", "hands_componentsr", "hands_meanl", "hands_meanr", "vt", "ft")
+KEYS = (
+    "v_template",
+    "f",
+    "shapedirs",
+    "posedirs",
+    "J_regressor",
+    "weights",
+    "kintree_table",
+    "hands_componentsl",
+    "hands_componentsr",
+    "hands_meanl",
+    "hands_meanr",
+    "vt",
+    "ft",
+)
 """Keys :func:`load_smplx_model` reads (the rest of the file is never decompressed)."""
 
 
@@ -190,8 +300,12 @@ def load_smplx_model(path: str | Path) -> SmplxModel:
     parents = kt[0].astype(np.int64)
     parents[0] = -1  # the official file stores 2^32 - 1 for the root
     if kt[1].tolist() != list(range(NUM_JOINTS)) or tuple(parents.tolist()) != SMPLX_PARENTS:
-        raise SchemaError(path, "kintree_table", "not SMPL-X's kinematic tree (55 joints, pelvis first, "
-                          f"parents {list(SMPLX_PARENTS)}); got parents {parents.tolist()}")
+        raise SchemaError(
+            path,
+            "kintree_table",
+            "not SMPL-X's kinematic tree (55 joints, pelvis first, "
+            f"parents {list(SMPLX_PARENTS)}); got parents {parents.tolist()}",
+        )
     hands_components = hands_mean = None
     if "hands_componentsl" in z and "hands_componentsr" in z:
         hc = tuple(_array(z, k, path, 2) for k in ("hands_componentsl", "hands_componentsr"))
@@ -223,8 +337,9 @@ def load_smplx_model(path: str | Path) -> SmplxModel:
     )
 
 
-def _check_uvs(vt: np.ndarray, ft: np.ndarray, num_faces: int, path: Path, kv: str, kf: str
-               ) -> tuple[np.ndarray, np.ndarray]:
+def _check_uvs(
+    vt: np.ndarray, ft: np.ndarray, num_faces: int, path: Path, kv: str, kf: str
+) -> tuple[np.ndarray, np.ndarray]:
     _shape(vt, (None, 2), path, kv)
     _shape(ft, (num_faces, 3), path, kf, " (one UV index per corner of every model triangle)")
     if ft.min() < 0 or ft.max() >= len(vt):
@@ -240,10 +355,18 @@ def load_smplx_uvs(path: str | Path, model: SmplxModel) -> tuple[np.ndarray, np.
     if obj.uvs is None or obj.face_uvs is None:
         raise SchemaError(path, "vt", "no texture coordinates (every face needs v/vt corners)")
     if len(obj.vertices) != model.num_vertices or obj.faces.shape != model.faces.shape:
-        raise SchemaError(path, "f", f"{len(obj.vertices)} vertices / {len(obj.faces)} triangles, the model "
-                          f"{model.path.name} has {model.num_vertices} / {len(model.faces)}")
+        raise SchemaError(
+            path,
+            "f",
+            f"{len(obj.vertices)} vertices / {len(obj.faces)} triangles, the model "
+            f"{model.path.name} has {model.num_vertices} / {len(model.faces)}",
+        )
     if not np.array_equal(obj.faces, model.faces):
         i = int(np.argmax((obj.faces != model.faces).any(1)))
-        raise SchemaError(path, "f", f"triangle {i} is {obj.faces[i].tolist()}, the model's is "
-                          f"{model.faces[i].tolist()}: not the SMPL-X topology")
+        raise SchemaError(
+            path,
+            "f",
+            f"triangle {i} is {obj.faces[i].tolist()}, the model's is "
+            f"{model.faces[i].tolist()}: not the SMPL-X topology",
+        )
     return _check_uvs(obj.uvs, obj.face_uvs, len(model.faces), path, "vt", "f")

@@ -33,8 +33,15 @@ from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.io import read_npz
 
 PER_FRAME: dict[str, int | None] = {
-    "global_orient": 3, "transl": 3, "body_pose": 63, "jaw_pose": 3, "leye_pose": 3, "reye_pose": 3,
-    "left_hand_pose": None, "right_hand_pose": None, "expression": None,
+    "global_orient": 3,
+    "transl": 3,
+    "body_pose": 63,
+    "jaw_pose": 3,
+    "leye_pose": 3,
+    "reye_pose": 3,
+    "left_hand_pose": None,
+    "right_hand_pose": None,
+    "expression": None,
 }
 """Per-frame arrays and their widths (None: checked elsewhere)."""
 REQUIRED = ("betas", "global_orient", "transl", "body_pose")
@@ -108,19 +115,22 @@ class SmplxParams:
             if a.ndim == 3 and a.shape[2] == 3:
                 a = out[k] = a.reshape(a.shape[0], -1)
             if a.ndim != 2 or a.shape[0] != F:
-                raise SchemaError(file, k, f"expected [{F}, {width or 'n'}] (F from global_orient), "
-                                  f"got {list(a.shape)}")
+                raise SchemaError(
+                    file, k, f"expected [{F}, {width or 'n'}] (F from global_orient), got {list(a.shape)}"
+                )
             if width is not None and a.shape[1] != width:
                 raise SchemaError(file, k, f"expected [{F}, {width}], got {list(a.shape)}")
             if k.endswith("hand_pose") and not 1 <= a.shape[1] <= 45:
-                raise SchemaError(file, k, f"expected [{F}, 45] axis-angle or [{F}, n <= 45] PCA coefficients, "
-                                  f"got {list(a.shape)}")
+                raise SchemaError(
+                    file, k, f"expected [{F}, 45] axis-angle or [{F}, n <= 45] PCA coefficients, got {list(a.shape)}"
+                )
         b = out["betas"]
         if b.ndim == 2 and len(b) >= 1:
             spread = float(np.abs(b - b[:1]).max())
             if spread > 1e-6:
-                raise SchemaError(file, "betas", f"vary across rows (by up to {spread:.3g}); "
-                                  "a capture has one body shape")
+                raise SchemaError(
+                    file, "betas", f"vary across rows (by up to {spread:.3g}); a capture has one body shape"
+                )
             b = b[0]
         if b.ndim != 1:
             raise SchemaError(file, "betas", f"expected [N] or [1, N], got {list(out['betas'].shape)}")
@@ -139,28 +149,35 @@ def hand_pose(coeffs: np.ndarray, side: int, model: SmplxModel, file: Path | str
     if coeffs.shape[1] == 45:
         return coeffs
     if model.hands_components is None:
-        raise SchemaError(file, key, f"{coeffs.shape[1]} PCA coefficients, but {model.path.name} has no "
-                          "hands_componentsl/hands_componentsr")
+        raise SchemaError(
+            file,
+            key,
+            f"{coeffs.shape[1]} PCA coefficients, but {model.path.name} has no hands_componentsl/hands_componentsr",
+        )
     comps = model.hands_components[side].astype(np.float64)
     if coeffs.shape[1] > len(comps):
         raise SchemaError(file, key, f"{coeffs.shape[1]} PCA coefficients, the model has {len(comps)} components")
     return coeffs @ comps[: coeffs.shape[1]]
 
 
-def full_pose(params: SmplxParams, model: SmplxModel, flat_hand_mean: bool = True,
-              file: Path | str = "smpl_params.npz") -> np.ndarray:
+def full_pose(
+    params: SmplxParams, model: SmplxModel, flat_hand_mean: bool = True, file: Path | str = "smpl_params.npz"
+) -> np.ndarray:
     """SMPL-X's full pose, one axis-angle per joint in :data:`SMPLX_JOINT_NAMES` order, as ``smplx.SMPLX(...,
     flat_hand_mean=flat_hand_mean)`` builds it (the model's ``hands_mean`` added when ``flat_hand_mean`` is False).
 
     -> [F, 55, 3] float64 radians; joint 0 is ``global_orient``.
     """
     F = params.num_frames
-    hands = [hand_pose(getattr(params, f"{s}_hand_pose"), i, model, file, f"{s}_hand_pose")
-             for i, s in enumerate(("left", "right"))]
+    hands = [
+        hand_pose(getattr(params, f"{s}_hand_pose"), i, model, file, f"{s}_hand_pose")
+        for i, s in enumerate(("left", "right"))
+    ]
     if not flat_hand_mean:
         if model.hands_mean is None:
             raise SchemaError(model.path, "hands_meanl", "missing, and flat_hand_mean=False needs it")
         hands = [h + m.astype(np.float64) for h, m in zip(hands, model.hands_mean)]
-    pose = np.concatenate([params.global_orient, params.body_pose, params.jaw_pose, params.leye_pose,
-                           params.reye_pose, *hands], axis=1)
+    pose = np.concatenate(
+        [params.global_orient, params.body_pose, params.jaw_pose, params.leye_pose, params.reye_pose, *hands], axis=1
+    )
     return pose.reshape(F, NUM_JOINTS, 3)

@@ -7,8 +7,15 @@
 
 from .image import gaussian_kernel1d, mse, psnr, psnr_from_mse, ssim, ssim_map
 from .temporal import frame_dependence
-from .lpips import (LPIPS, LoadedLPIPS, LPIPSMode, LPIPSWeightsError, convert_official_lpips, load_lpips,
-                    official_lpips_state_dict)
+from .lpips import (
+    LPIPS,
+    LoadedLPIPS,
+    LPIPSMode,
+    LPIPSWeightsError,
+    convert_official_lpips,
+    load_lpips,
+    official_lpips_state_dict,
+)
 
 __all__ = [
     "LPIPS",

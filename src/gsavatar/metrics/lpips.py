@@ -191,25 +191,37 @@ def _relu() -> nn.ReLU:
 def _alex_layers(variant: Variant) -> tuple[list[nn.Module], tuple[tuple[int, int], ...]]:
     if variant == "vanilla":  # torchvision alexnet().features
         layers: list[nn.Module] = [
-            nn.Conv2d(3, 64, kernel_size=11, stride=4, padding=2), _relu(),  # 0, 1
+            nn.Conv2d(3, 64, kernel_size=11, stride=4, padding=2),
+            _relu(),  # 0, 1
             nn.MaxPool2d(kernel_size=3, stride=2),  # 2
-            nn.Conv2d(64, 192, kernel_size=5, padding=2), _relu(),  # 3, 4
+            nn.Conv2d(64, 192, kernel_size=5, padding=2),
+            _relu(),  # 3, 4
             nn.MaxPool2d(kernel_size=3, stride=2),  # 5
-            nn.Conv2d(192, 384, kernel_size=3, padding=1), _relu(),  # 6, 7
-            nn.Conv2d(384, 256, kernel_size=3, padding=1), _relu(),  # 8, 9
-            nn.Conv2d(256, 256, kernel_size=3, padding=1), _relu(),  # 10, 11
+            nn.Conv2d(192, 384, kernel_size=3, padding=1),
+            _relu(),  # 6, 7
+            nn.Conv2d(384, 256, kernel_size=3, padding=1),
+            _relu(),  # 8, 9
+            nn.Conv2d(256, 256, kernel_size=3, padding=1),
+            _relu(),  # 10, 11
         ]  # (12: final MaxPool, unused by LPIPS)
         return layers, VANILLA_SLICES["alex"]
     # ST-LPIPS invariant_networks.alexnet(variant='shift_tolerant', filter_size=3)
     layers = [
         nn.Conv2d(3, 64, kernel_size=11, stride=1, padding=2),  # 0
-        BlurPool2d(64), _relu(),  # 1, 2
-        nn.MaxPool2d(kernel_size=3, stride=1), BlurPool2d(64),  # 3, 4
-        nn.Conv2d(64, 192, kernel_size=5, padding=2), _relu(),  # 5, 6
-        nn.MaxPool2d(kernel_size=3, stride=1), BlurPool2d(192),  # 7, 8
-        nn.Conv2d(192, 384, kernel_size=3, padding=1), _relu(),  # 9, 10
-        nn.Conv2d(384, 256, kernel_size=3, padding=1), _relu(),  # 11, 12
-        nn.Conv2d(256, 256, kernel_size=3, padding=1), _relu(),  # 13, 14
+        BlurPool2d(64),
+        _relu(),  # 1, 2
+        nn.MaxPool2d(kernel_size=3, stride=1),
+        BlurPool2d(64),  # 3, 4
+        nn.Conv2d(64, 192, kernel_size=5, padding=2),
+        _relu(),  # 5, 6
+        nn.MaxPool2d(kernel_size=3, stride=1),
+        BlurPool2d(192),  # 7, 8
+        nn.Conv2d(192, 384, kernel_size=3, padding=1),
+        _relu(),  # 9, 10
+        nn.Conv2d(384, 256, kernel_size=3, padding=1),
+        _relu(),  # 11, 12
+        nn.Conv2d(256, 256, kernel_size=3, padding=1),
+        _relu(),  # 13, 14
     ]  # (15, 16: final MaxPool + BlurPool, unused)
     return layers, ((0, 3), (3, 7), (7, 11), (11, 13), (13, 15))
 
@@ -466,9 +478,7 @@ class LPIPS(nn.Module):
 
         found = infer_variant(sd)
         if variant is not None and variant != found:
-            raise ValueError(
-                f"variant={variant!r} but the weights from {source} are for a {found!r} trunk"
-            )
+            raise ValueError(f"variant={variant!r} but the weights from {source} are for a {found!r} trunk")
         self.net_name: NetName = net
         self.variant: Variant = found
         self.weights_source = source
@@ -487,6 +497,7 @@ class LPIPS(nn.Module):
         unexpected = sorted(set(sd) - set(own))
         wrong = sorted(k for k in set(own) & set(sd) if own[k].shape != sd[k].shape)
         if missing or unexpected or wrong:
+
             def _few(keys: list[str]) -> str:
                 return f"{keys[:5]}{' ...' if len(keys) > 5 else ''}"
 
@@ -528,9 +539,7 @@ class LPIPS(nn.Module):
             raise ValueError(f"gt must match pred's shape {tuple(pred.shape)}, got {tuple(gt.shape)}")
         h, w = pred.shape[-2:]
         if min(h, w) < self.min_size:
-            raise ValueError(
-                f"{self.lpips_name} needs H, W >= {self.min_size}, got H={h}, W={w}"
-            )
+            raise ValueError(f"{self.lpips_name} needs H, W >= {self.min_size}, got H={h}, W={w}")
 
     def layer_distances(self, pred: Tensor, gt: Tensor) -> Tensor:
         """Per-layer LPIPS terms.
@@ -549,9 +558,7 @@ class LPIPS(nn.Module):
         # one trunk pass over both images (batched)
         x = self.scaling_layer(torch.cat([pred, gt], 0).to(dtype))  # [2B, 3, H, W]
         feats = self.net(x)
-        return torch.stack(
-            [layer_distance(f[:B], f[B:], w) for f, w in zip(feats, self.lin_weights)], dim=1
-        )
+        return torch.stack([layer_distance(f[:B], f[B:], w) for f, w in zip(feats, self.lin_weights)], dim=1)
 
     def forward(self, pred: Tensor, gt: Tensor) -> Tensor:
         """LPIPS distance per image.
@@ -583,8 +590,14 @@ class LoadedLPIPS(NamedTuple):
     """What to report next to the scores: ``net.lpips_name``, ``off`` or ``off (unavailable: <error type>)``."""
 
 
-def load_lpips(mode: LPIPSMode, device: torch.device | str, weights: str | Path | None = None, *,
-               auto_on: bool = True, fallback: bool = False) -> LoadedLPIPS:
+def load_lpips(
+    mode: LPIPSMode,
+    device: torch.device | str,
+    weights: str | Path | None = None,
+    *,
+    auto_on: bool = True,
+    fallback: bool = False,
+) -> LoadedLPIPS:
     """The LPIPS network a command's ``--lpips mode`` asks for: the one place the commands build it.
 
     ``off``: none. ``on``: ``LPIPS(weights=weights)`` on ``device``; ValueError naming the option when it

@@ -30,8 +30,8 @@ AG_PATCH = 512
 PROTOCOLS = {
     "ours": "black background; PSNR full image and inside the mask (psnr_fg), SSIM and LPIPS full image",
     "ag": "GT white outside its mask, render on white; PSNR and SSIM full image; LPIPS vgg and alex on the mask's "
-          f"bounding box padded with white to a square and resized to {AG_PATCH} (Animatable Gaussians' "
-          "comparison_body_only_avatars.py, as MMLPs)",
+    f"bounding box padded with white to a square and resized to {AG_PATCH} (Animatable Gaussians' "
+    "comparison_body_only_avatars.py, as MMLPs)",
 }
 """Protocol name -> what it measures (written next to the scores)."""
 
@@ -70,8 +70,13 @@ def square_crop(image: Tensor, box: tuple[int, int, int, int], size: int = AG_PA
     return F.interpolate(sq[None], size=(size, size), mode="bilinear", align_corners=False)[0]
 
 
-def ag_scores(pred_white: Tensor, gt_white: Tensor, mask: Tensor,
-              lpips_nets: Mapping[str, torch.nn.Module] | None = None, size: int = AG_PATCH) -> dict[str, float]:
+def ag_scores(
+    pred_white: Tensor,
+    gt_white: Tensor,
+    mask: Tensor,
+    lpips_nets: Mapping[str, torch.nn.Module] | None = None,
+    size: int = AG_PATCH,
+) -> dict[str, float]:
     """The ``ag`` protocol on one view (module docstring).
 
     pred_white, gt_white [3, H, W] in [0, 1], both on white (:func:`on_white`); mask [1, H, W] (the GT's).

@@ -131,8 +131,11 @@ class GaussianAvatar(nn.Module):
         self.register_buffer("pose_mask", f32(pm))  # [A, P] 0/1
         self.register_buffer("face_mask", f32(masks.face))  # [A] 0/1
         for kind, pca in (("local", pca_local), ("global", pca_global)):
-            for name, arr in (("mean", None if pca is None else pca.mean), ("basis", None if pca is None else pca.basis),
-                              ("limit", None if pca is None else pca.clamp_sigma * pca.sigma)):
+            for name, arr in (
+                ("mean", None if pca is None else pca.mean),
+                ("basis", None if pca is None else pca.basis),
+                ("limit", None if pca is None else pca.clamp_sigma * pca.sigma),
+            ):
                 self.register_buffer(f"pca_{kind}_{name}", None if arr is None else f32(arr))
 
         if cfg.input_norm:  # filled by set_input_stats (else identity); saved with the checkpoint
@@ -186,7 +189,7 @@ class GaussianAvatar(nn.Module):
         offset = 0
         for p in params:
             width = int(np.prod(p.shape[2:]))
-            p.data = packed[:, :, offset:offset + width].unflatten(2, p.shape[2:])
+            p.data = packed[:, :, offset : offset + width].unflatten(2, p.shape[2:])
             offset += width
         return True
 
@@ -194,9 +197,9 @@ class GaussianAvatar(nn.Module):
     """State-dict keys of the pose network before it moved into ``pose_head`` (checkpoints of earlier runs)."""
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
-        legacy = [k for k in state_dict if k.startswith(prefix) and k[len(prefix):].startswith(self._LEGACY_HEAD_KEYS)]
+        legacy = [k for k in state_dict if k.startswith(prefix) and k[len(prefix) :].startswith(self._LEGACY_HEAD_KEYS)]
         for key in legacy:
-            state_dict[f"{prefix}pose_head.{key[len(prefix):]}"] = state_dict.pop(key)
+            state_dict[f"{prefix}pose_head.{key[len(prefix) :]}"] = state_dict.pop(key)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def sparse_weights(self, name: str, device: torch.device, dtype: torch.dtype) -> Tensor:
@@ -261,8 +264,13 @@ class GaussianAvatar(nn.Module):
             if face is not None and self.config.face_dim:
                 face = (face.to(dt) - self.face_in_mean.to(dt)) / self.face_in_std.to(dt)
         return gm.anchor_inputs(
-            x, self.pose_mask.to(dt), face, self.face_mask.to(dt), self.config.face_dim,
-            latents if self.latent_in else None, self.latent_in,
+            x,
+            self.pose_mask.to(dt),
+            face,
+            self.face_mask.to(dt),
+            self.config.face_dim,
+            latents if self.latent_in else None,
+            self.latent_in,
         )
 
     def _validate(self, pose, root_rotation, root_translation, face, latents, sh_degree) -> None:
@@ -309,7 +317,9 @@ class GaussianAvatar(nn.Module):
         B, n_rest = pose.shape[0], (deg + 1) ** 2 - 1
         d = self.pose_head(self, pose, face, latents, n_rest) if correctives else PoseDeltas()
         ctrl_disp = gm.add_delta(self.ctrl_bias, d.ctrl, B)  # [B, C, 3]
-        offset = gm.sparse_interpolate(ctrl_disp, self.sparse_weights("gauss_ctrl", ctrl_disp.device, ctrl_disp.dtype))  # [B, G, 3]
+        offset = gm.sparse_interpolate(
+            ctrl_disp, self.sparse_weights("gauss_ctrl", ctrl_disp.device, ctrl_disp.dtype)
+        )  # [B, G, 3]
         if d.position is not None:
             offset = offset + d.position
         canonical = self.rest_means[None] + offset  # [B, G, 3]
@@ -324,20 +334,29 @@ class GaussianAvatar(nn.Module):
         else:
             sh = sh0[:, :, None]
 
-        T = skinning_transforms(self.rig_tensors(pose.device, pose.dtype), pose, root_rotation, root_translation)  # [B, J, 4, 4]
-        means, quats = gm.pose_lbs(canonical, quats_c, T, self.skin_indices, self.skin_weights,
-                                   self.sparse_weights("skin", T.device, T.dtype))
+        T = skinning_transforms(
+            self.rig_tensors(pose.device, pose.dtype), pose, root_rotation, root_translation
+        )  # [B, J, 4, 4]
+        means, quats = gm.pose_lbs(
+            canonical, quats_c, T, self.skin_indices, self.skin_weights, self.sparse_weights("skin", T.device, T.dtype)
+        )
         return AvatarOutput(means, quats, scales, opacities, sh, ctrl_disp, canonical)
 
     # --- optimisation ----------------------------------------------------------------------
     _GROUPS = (
-        ("scale_bias", "scale_bias"), ("scale_basis", "scale_basis"),
-        ("rotation_bias", "rotation_bias"), ("rotation_basis", "rotation_basis"),
+        ("scale_bias", "scale_bias"),
+        ("scale_basis", "scale_basis"),
+        ("rotation_bias", "rotation_bias"),
+        ("rotation_basis", "rotation_basis"),
         ("opacity_bias", "opacity_bias"),
-        ("sh0_bias", "sh0_bias"), ("sh0_basis", "sh0_basis"),
-        ("shn_bias", "shn_bias"), ("shn_basis", "shn_basis"),
-        ("ctrl_bias", "ctrl_bias"), ("ctrl_basis", "ctrl_basis"),
-        ("gauss_pos_basis", "gauss_pos_basis"), ("sh0_anchor_basis", "sh0_basis"),
+        ("sh0_bias", "sh0_bias"),
+        ("sh0_basis", "sh0_basis"),
+        ("shn_bias", "shn_bias"),
+        ("shn_basis", "shn_basis"),
+        ("ctrl_bias", "ctrl_bias"),
+        ("ctrl_basis", "ctrl_basis"),
+        ("gauss_pos_basis", "gauss_pos_basis"),
+        ("sh0_anchor_basis", "sh0_basis"),
         ("sh0_latent_basis", "sh0_basis"),
     )
 
@@ -350,8 +369,14 @@ class GaussianAvatar(nn.Module):
         ``torch.optim.AdamW(groups, eps=1e-15, betas=(0.9, 0.999))``.
         """
         lrs = lrs or LearningRates()
-        groups = [{"name": "mlp", "params": list(self.pose_head.parameters()), "lr": lrs.mlp,
-                   "weight_decay": lrs.mlp_weight_decay}]
+        groups = [
+            {
+                "name": "mlp",
+                "params": list(self.pose_head.parameters()),
+                "lr": lrs.mlp,
+                "weight_decay": lrs.mlp_weight_decay,
+            }
+        ]
         for attr, lr_name in self._GROUPS:
             p = getattr(self, attr)
             if p is not None and p.numel():

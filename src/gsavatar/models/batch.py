@@ -38,8 +38,14 @@ class FrameBatch(NamedTuple):
         optional (datasets built without textures); other keys (image, mask, camera) are ignored.
         """
         face = items.get("face")
-        return cls(items["pose"], items["root_rotation"], items["root_translation"],
-                   face if face is not None and face.numel() else None, items.get("texture"), latents)
+        return cls(
+            items["pose"],
+            items["root_rotation"],
+            items["root_translation"],
+            face if face is not None and face.numel() else None,
+            items.get("texture"),
+            latents,
+        )
 
     @property
     def batch_size(self) -> int:

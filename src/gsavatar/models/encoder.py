@@ -63,8 +63,9 @@ def reparameterize(mu: Tensor, logvar: Tensor, eps: Tensor) -> Tensor:
         Tensor  # [...]
     """
     if eps.shape != mu.shape or logvar.shape != mu.shape:
-        raise ValueError(f"mu, logvar and eps must have one shape, got {tuple(mu.shape)}, {tuple(logvar.shape)}, "
-                         f"{tuple(eps.shape)}")
+        raise ValueError(
+            f"mu, logvar and eps must have one shape, got {tuple(mu.shape)}, {tuple(logvar.shape)}, {tuple(eps.shape)}"
+        )
     return mu + torch.exp(0.5 * logvar.clamp(max=LOGVAR_RANGE[1])) * eps
 
 
@@ -107,7 +108,9 @@ def mask_texture(texture: Tensor, face_uv_mask: Tensor, fill: float = 0.0) -> Te
         Tensor  # [B, 3, S, S]
     """
     if texture.ndim != 4 or face_uv_mask.ndim != 2:
-        raise ValueError(f"texture must be [B, C, S, S] and face_uv_mask [h, w], got {tuple(texture.shape)}, {tuple(face_uv_mask.shape)}")
+        raise ValueError(
+            f"texture must be [B, C, S, S] and face_uv_mask [h, w], got {tuple(texture.shape)}, {tuple(face_uv_mask.shape)}"
+        )
     m = face_uv_mask.to(device=texture.device, dtype=torch.float32)[None, None]
     m = F.interpolate(m, size=texture.shape[-2:], mode="nearest")[0, 0] > 0.5  # [S, S]
     return torch.where(m, torch.as_tensor(fill, dtype=texture.dtype, device=texture.device), texture)
@@ -133,7 +136,11 @@ class AppearanceEncoder(nn.Module):
         layers: list[nn.Module] = []
         c_in = in_channels
         for c in encoder_channels(n_down, first_channels, max_channels):
-            layers += [nn.Conv2d(c_in, c, 3, stride=2, padding=1), nn.GroupNorm(min(gn_groups, c), c), nn.ReLU(inplace=True)]
+            layers += [
+                nn.Conv2d(c_in, c, 3, stride=2, padding=1),
+                nn.GroupNorm(min(gn_groups, c), c),
+                nn.ReLU(inplace=True),
+            ]
             c_in = c
         self.trunk = nn.Sequential(*layers)
         self.feature_channels = c_in
@@ -183,8 +190,14 @@ class AppearanceEncoder(nn.Module):
     def param_groups(self, lrs: LearningRates | None = None) -> list[dict]:
         """One AdamW group ``encoder``: ``lrs.encoder`` and ``lrs.encoder_weight_decay`` (supp. D.2: 5e-4, 1e-3)."""
         lrs = lrs or LearningRates()
-        return [{"name": "encoder", "params": list(self.parameters()), "lr": lrs.encoder,
-                 "weight_decay": lrs.encoder_weight_decay}]
+        return [
+            {
+                "name": "encoder",
+                "params": list(self.parameters()),
+                "lr": lrs.encoder,
+                "weight_decay": lrs.encoder_weight_decay,
+            }
+        ]
 
 
 def standardize(x: Tensor, mean: Tensor, var: Tensor, floor: float) -> Tensor:

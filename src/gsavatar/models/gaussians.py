@@ -23,8 +23,13 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from gsavatar.geometry.rotations import matrix_to_quat, orthonormalize, quat_to_matrix
-from gsavatar.models.kernels import (basis_product, polar_rotation_fast, pose_lbs_fast, posed_quaternion_fast,
-                                     sparse_interpolate_fast)
+from gsavatar.models.kernels import (
+    basis_product,
+    polar_rotation_fast,
+    pose_lbs_fast,
+    posed_quaternion_fast,
+    sparse_interpolate_fast,
+)
 from gsavatar.models.config import SH_C0
 
 HAND_GROUP_NAMES = ("left_hand", "right_hand")
@@ -94,8 +99,9 @@ def interpolation_matrix(idx: Tensor, weights: Tensor, num_sources: int) -> Tens
     """
     N, k = idx.shape
     rows = torch.arange(N, device=idx.device).repeat_interleave(k)
-    return torch.sparse_coo_tensor(torch.stack([rows, idx.reshape(-1)]), weights.reshape(-1), (N, num_sources),
-                                   check_invariants=True).coalesce()
+    return torch.sparse_coo_tensor(
+        torch.stack([rows, idx.reshape(-1)]), weights.reshape(-1), (N, num_sources), check_invariants=True
+    ).coalesce()
 
 
 def sparse_interpolate(values: Tensor, matrix: Tensor, compiled: bool = True) -> Tensor:
@@ -186,9 +192,17 @@ POLAR_MIN_DET = 1e-6
 def _cofactors(x: list[Tensor]) -> tuple[list[Tensor], Tensor]:
     """Cofactors (row-major, ``X^-T = cof / det``) and determinant of 3x3 matrices given as 9 components."""
     x00, x01, x02, x10, x11, x12, x20, x21, x22 = x
-    cof = [x11 * x22 - x12 * x21, x12 * x20 - x10 * x22, x10 * x21 - x11 * x20,
-           x21 * x02 - x22 * x01, x22 * x00 - x20 * x02, x20 * x01 - x21 * x00,
-           x01 * x12 - x02 * x11, x02 * x10 - x00 * x12, x00 * x11 - x01 * x10]
+    cof = [
+        x11 * x22 - x12 * x21,
+        x12 * x20 - x10 * x22,
+        x10 * x21 - x11 * x20,
+        x21 * x02 - x22 * x01,
+        x22 * x00 - x20 * x02,
+        x20 * x01 - x21 * x00,
+        x01 * x12 - x02 * x11,
+        x02 * x10 - x00 * x12,
+        x00 * x11 - x01 * x10,
+    ]
     return cof, x00 * cof[0] + x01 * cof[1] + x02 * cof[2]
 
 
@@ -238,7 +252,9 @@ def polar_rotation(M: Tensor, max_iters: int = 12, tol: float | None = None, com
     return X
 
 
-def blend_affine(transforms: Tensor, skin_indices: Tensor, skin_weights: Tensor, skin_matrix: Tensor | None = None) -> Tensor:
+def blend_affine(
+    transforms: Tensor, skin_indices: Tensor, skin_weights: Tensor, skin_matrix: Tensor | None = None
+) -> Tensor:
     """LBS-blended 3x4 affine per point. transforms [B, J, 4, 4] posed_from_rest, idx/weights [N, K] -> [B, N, 3, 4]
 
     ``skin_matrix``: the same weights as a sparse ``[N, J]`` matrix (:func:`interpolation_matrix`), one
@@ -270,8 +286,14 @@ def pose_gaussians(canonical: Tensor, quats: Tensor, affine: Tensor, compiled: b
     return means, matrix_to_quat(R)
 
 
-def pose_lbs(canonical: Tensor, quats: Tensor, transforms: Tensor, skin_indices: Tensor, skin_weights: Tensor,
-             skin_matrix: Tensor | None = None) -> tuple[Tensor, Tensor]:
+def pose_lbs(
+    canonical: Tensor,
+    quats: Tensor,
+    transforms: Tensor,
+    skin_indices: Tensor,
+    skin_weights: Tensor,
+    skin_matrix: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
     """Skin and pose canonical Gaussians: :func:`blend_affine` then :func:`pose_gaussians`.
 
     At inference on CPU (no gradients, every blend with ``det > POLAR_MIN_DET``) the three steps run as
@@ -281,8 +303,9 @@ def pose_lbs(canonical: Tensor, quats: Tensor, transforms: Tensor, skin_indices:
     skin_indices/skin_weights [G, K], skin_matrix sparse [G, J] or None -> (means [B, G, 3], quats [B, G, 4])
     """
     if skin_matrix is not None:
-        fast = pose_lbs_fast(transforms, skin_matrix, canonical, quats, 10 * torch.finfo(canonical.dtype).eps,
-                             POLAR_MIN_DET)
+        fast = pose_lbs_fast(
+            transforms, skin_matrix, canonical, quats, 10 * torch.finfo(canonical.dtype).eps, POLAR_MIN_DET
+        )
         if fast is not None:
             return fast
     return pose_gaussians(canonical, quats, blend_affine(transforms, skin_indices, skin_weights, skin_matrix))
@@ -290,9 +313,11 @@ def pose_lbs(canonical: Tensor, quats: Tensor, transforms: Tensor, skin_indices:
 
 def _det3(M: Tensor) -> Tensor:
     """Determinant of 3x3 matrices in closed form. [..., 3, 3] -> [...]"""
-    return (M[..., 0, 0] * (M[..., 1, 1] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 1])
-            - M[..., 0, 1] * (M[..., 1, 0] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 0])
-            + M[..., 0, 2] * (M[..., 1, 0] * M[..., 2, 1] - M[..., 1, 1] * M[..., 2, 0]))
+    return (
+        M[..., 0, 0] * (M[..., 1, 1] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 1])
+        - M[..., 0, 1] * (M[..., 1, 0] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 0])
+        + M[..., 0, 2] * (M[..., 1, 0] * M[..., 2, 1] - M[..., 1, 1] * M[..., 2, 0])
+    )
 
 
 # --- initialisation ---------------------------------------------------------------------
@@ -318,7 +343,9 @@ def normal_frames(normals: np.ndarray) -> np.ndarray:
     return np.stack([t1, t2, n], axis=2)
 
 
-def init_gaussian_params(positions: np.ndarray, normals: np.ndarray, scale_max: float, normal_ratio: float) -> tuple[np.ndarray, np.ndarray]:
+def init_gaussian_params(
+    positions: np.ndarray, normals: np.ndarray, scale_max: float, normal_ratio: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Initial (log-scale [G, 3], quaternion wxyz [G, 4]) biases.
 
     Tangent scales = mean distance to the 3 nearest Gaussians (clamped to

@@ -27,7 +27,6 @@ from gsavatar.utils.compiled import numba, set_threads
 
 
 if numba is not None:
-
     # Accumulation in the inputs' dtype (``x * 0`` keeps it) lets LLVM vectorise the inner loops; the
     # sums have K or B terms, like einsum's.
     @numba.njit(parallel=True, cache=False, fastmath=True)
@@ -62,7 +61,6 @@ if numba is not None:
                         cb = coeffs[b, n, k]
                         for d in range(D):
                             g_basis[n, k, d] += cb * grad[b, n, d]
-
 
     @numba.njit(cache=False, inline="always")
     def _newton_polar(x, cof, tol, max_iters):
@@ -244,8 +242,11 @@ if numba is not None:
                 for i in range(3):
                     for k in range(3):
                         x[3 * i + k] = a[4 * i + k]
-                det = (x[0] * (x[4] * x[8] - x[5] * x[7]) - x[1] * (x[3] * x[8] - x[5] * x[6])
-                       + x[2] * (x[3] * x[7] - x[4] * x[6]))
+                det = (
+                    x[0] * (x[4] * x[8] - x[5] * x[7])
+                    - x[1] * (x[3] * x[8] - x[5] * x[6])
+                    + x[2] * (x[3] * x[7] - x[4] * x[6])
+                )
                 if not det > min_det:
                     bad += 1
                     continue
@@ -350,12 +351,17 @@ def sparse_interpolate_fast(values: Tensor, matrix: Tensor) -> Tensor | None:
 
     values [B, M, D] -> [B, N, D]
     """
-    if (numba is None or values.device.type != "cpu" or values.dtype not in (torch.float32, torch.float64)
-            or matrix.layout != torch.sparse_coo or not matrix.is_coalesced() or matrix.requires_grad
-            or values.shape[0] == 0):
+    if (
+        numba is None
+        or values.device.type != "cpu"
+        or values.dtype not in (torch.float32, torch.float64)
+        or matrix.layout != torch.sparse_coo
+        or not matrix.is_coalesced()
+        or matrix.requires_grad
+        or values.shape[0] == 0
+    ):
         return None
     return _SparseInterp.apply(values, matrix)
-
 
 
 if numba is not None:
@@ -405,16 +411,27 @@ def packed_bases(position: Tensor, scale: Tensor, rotation: Tensor, sh0: Tensor,
     offset = 0
     for t, w in zip((position, scale, rotation, sh0, shn), (*PACKED_WIDTHS, 3 * shn.shape[2])):
         want = (K * D, D, 1) if t.ndim == 3 else (K * D, D, 3, 1)
-        if (t.untyped_storage().data_ptr() != position.untyped_storage().data_ptr() or t.shape[:2] != (G, K)
-                or (t.numel() and (t.stride() != want or t.storage_offset() != base + offset))):
+        if (
+            t.untyped_storage().data_ptr() != position.untyped_storage().data_ptr()
+            or t.shape[:2] != (G, K)
+            or (t.numel() and (t.stride() != want or t.storage_offset() != base + offset))
+        ):
             return None
         offset += w
     return position.as_strided((G, K, D), (K * D, D, 1), base)
 
 
-def interpolated_deltas_fast(coeffs: Tensor, matrix: Tensor, position: Tensor, scale: Tensor, rotation: Tensor,
-                             sh0: Tensor, shn: Tensor, n_sh_rest: int,
-                             sh0_anchor: Tensor | None = None) -> tuple[Tensor, ...] | None:
+def interpolated_deltas_fast(
+    coeffs: Tensor,
+    matrix: Tensor,
+    position: Tensor,
+    scale: Tensor,
+    rotation: Tensor,
+    sh0: Tensor,
+    shn: Tensor,
+    n_sh_rest: int,
+    sh0_anchor: Tensor | None = None,
+) -> tuple[Tensor, ...] | None:
     """Inference only: the Gaussians' pose-dependent deltas in one compiled pass over the Gaussians.
 
     Per Gaussian ``n`` and frame ``b``: ``w = (W @ coeffs[b])[n]`` (its anchors' coefficients
@@ -439,10 +456,16 @@ def interpolated_deltas_fast(coeffs: Tensor, matrix: Tensor, position: Tensor, s
         (position [B, G, 3], scale [B, G, 3], rotation [B, G, 4], sh0 [B, G, 3], shn [B, G, n_sh_rest, 3])
     """
     tensors = (coeffs, position, scale, rotation, sh0, shn) + ((sh0_anchor,) if sh0_anchor is not None else ())
-    if (torch.is_grad_enabled() or numba is None or matrix.layout != torch.sparse_coo or not matrix.is_coalesced()
-            or any(t.device.type != "cpu" or t.dtype != coeffs.dtype for t in tensors)
-            or coeffs.dtype not in (torch.float32, torch.float64) or 0 in coeffs.shape
-            or not 0 <= n_sh_rest <= shn.shape[2]):
+    if (
+        torch.is_grad_enabled()
+        or numba is None
+        or matrix.layout != torch.sparse_coo
+        or not matrix.is_coalesced()
+        or any(t.device.type != "cpu" or t.dtype != coeffs.dtype for t in tensors)
+        or coeffs.dtype not in (torch.float32, torch.float64)
+        or 0 in coeffs.shape
+        or not 0 <= n_sh_rest <= shn.shape[2]
+    ):
         return None
     packed = packed_bases(position, scale, rotation, sh0, shn)
     if packed is None:
@@ -451,12 +474,25 @@ def interpolated_deltas_fast(coeffs: Tensor, matrix: Tensor, position: Tensor, s
     crow, col, val, *_ = _csr_parts(matrix)
     B, G = coeffs.shape[0], crow.shape[0] - 1
     c = coeffs.detach().contiguous().numpy()
-    extra = sh0_anchor.detach().contiguous().numpy() if sh0_anchor is not None else np.zeros((B, c.shape[1], 3), c.dtype)
+    extra = (
+        sh0_anchor.detach().contiguous().numpy() if sh0_anchor is not None else np.zeros((B, c.shape[1], 3), c.dtype)
+    )
     out = torch.empty(B, G, packed.shape[2], dtype=coeffs.dtype)
     lead = sum(PACKED_WIDTHS)
-    _interp_deltas_packed(crow, col, val.astype(c.dtype, copy=False), c, extra, packed.detach().numpy(), sum(PACKED_WIDTHS[:3]),
-                          out.numpy())
-    return (*out[..., :lead].split(PACKED_WIDTHS, dim=-1), out[..., lead:lead + 3 * n_sh_rest].unflatten(-1, (n_sh_rest, 3)))
+    _interp_deltas_packed(
+        crow,
+        col,
+        val.astype(c.dtype, copy=False),
+        c,
+        extra,
+        packed.detach().numpy(),
+        sum(PACKED_WIDTHS[:3]),
+        out.numpy(),
+    )
+    return (
+        *out[..., :lead].split(PACKED_WIDTHS, dim=-1),
+        out[..., lead : lead + 3 * n_sh_rest].unflatten(-1, (n_sh_rest, 3)),
+    )
 
 
 class _BasisProduct(torch.autograd.Function):
@@ -488,9 +524,16 @@ def basis_product(coeffs: Tensor, basis: Tensor) -> Tensor:
 
     coeffs [B, N, K], basis [N, K, D] (may be a strided view) -> [B, N, D]
     """
-    fast = (numba is not None and coeffs.device.type == "cpu" and basis.device.type == "cpu"
-            and coeffs.dtype == basis.dtype and coeffs.dtype in (torch.float32, torch.float64)
-            and coeffs.shape[0] > 0 and coeffs.shape[1] > 0 and basis.shape[1] > 0)
+    fast = (
+        numba is not None
+        and coeffs.device.type == "cpu"
+        and basis.device.type == "cpu"
+        and coeffs.dtype == basis.dtype
+        and coeffs.dtype in (torch.float32, torch.float64)
+        and coeffs.shape[0] > 0
+        and coeffs.shape[1] > 0
+        and basis.shape[1] > 0
+    )
     if not fast:
         return torch.einsum("bnk,nkd->bnd", coeffs, basis)
     return _BasisProduct.apply(coeffs, basis)
@@ -556,8 +599,12 @@ class _PosedQuat(torch.autograd.Function):
         g_M, g_C = np.empty_like(R), np.empty_like(c)
         _posed_quat_backward(c, P, R, S, grad.detach().reshape(-1, 4).to(torch.float64).numpy(), g_M, g_C)
         shape_m = (*grad.shape[:-1], 3, 3)
-        return (torch.from_numpy(g_M).to(grad.dtype).reshape(shape_m), torch.from_numpy(g_C).to(grad.dtype).reshape(grad.shape),
-                None, None)
+        return (
+            torch.from_numpy(g_M).to(grad.dtype).reshape(shape_m),
+            torch.from_numpy(g_C).to(grad.dtype).reshape(grad.shape),
+            None,
+            None,
+        )
 
 
 def posed_quaternion_fast(M: Tensor, quats: Tensor, tol: float, max_iters: int = 12) -> Tensor | None:
@@ -572,8 +619,13 @@ def posed_quaternion_fast(M: Tensor, quats: Tensor, tol: float, max_iters: int =
 
     M [..., 3, 3] with det > 0, quats [..., 4] wxyz (normalised inside; zero -> identity) -> [..., 4] unit wxyz
     """
-    if (numba is None or M.device.type != "cpu" or M.dtype not in (torch.float32, torch.float64)
-            or quats.dtype != M.dtype or M.numel() == 0):
+    if (
+        numba is None
+        or M.device.type != "cpu"
+        or M.dtype not in (torch.float32, torch.float64)
+        or quats.dtype != M.dtype
+        or M.numel() == 0
+    ):
         return None
     if torch.is_grad_enabled() and (M.requires_grad or quats.requires_grad):
         return _PosedQuat.apply(M, quats, float(tol), int(max_iters))
@@ -581,13 +633,29 @@ def posed_quaternion_fast(M: Tensor, quats: Tensor, tol: float, max_iters: int =
     set_threads()
     Q = torch.empty(quats.shape, dtype=quats.dtype)
     none = np.empty((0, 0), np.float64)
-    _posed_quat_forward(M.detach().reshape(-1, 9).contiguous().numpy(), quats.detach().reshape(-1, 4).contiguous().numpy(),
-                        float(tol), int(max_iters), False, Q.numpy().reshape(-1, 4), none, none, none)
+    _posed_quat_forward(
+        M.detach().reshape(-1, 9).contiguous().numpy(),
+        quats.detach().reshape(-1, 4).contiguous().numpy(),
+        float(tol),
+        int(max_iters),
+        False,
+        Q.numpy().reshape(-1, 4),
+        none,
+        none,
+        none,
+    )
     return Q
 
 
-def pose_lbs_fast(transforms: Tensor, skin_matrix: Tensor, canonical: Tensor, quats: Tensor, tol: float,
-                  min_det: float, max_iters: int = 12) -> tuple[Tensor, Tensor] | None:
+def pose_lbs_fast(
+    transforms: Tensor,
+    skin_matrix: Tensor,
+    canonical: Tensor,
+    quats: Tensor,
+    tol: float,
+    min_det: float,
+    max_iters: int = 12,
+) -> tuple[Tensor, Tensor] | None:
     """Inference only: LBS blend, posed centres and posed rotations in one compiled pass over the points.
 
     The same numbers as :func:`~gsavatar.models.gaussians.blend_affine` with the sparse skin matrix followed
@@ -606,16 +674,32 @@ def pose_lbs_fast(transforms: Tensor, skin_matrix: Tensor, canonical: Tensor, qu
         (means [B, N, 3], quats [B, N, 4] unit wxyz, w >= 0)
     """
     dt = canonical.dtype
-    if (torch.is_grad_enabled() or numba is None or dt not in (torch.float32, torch.float64)
-            or any(t.device.type != "cpu" or t.dtype != dt for t in (transforms, canonical, quats))
-            or skin_matrix.layout != torch.sparse_coo or not skin_matrix.is_coalesced() or 0 in canonical.shape):
+    if (
+        torch.is_grad_enabled()
+        or numba is None
+        or dt not in (torch.float32, torch.float64)
+        or any(t.device.type != "cpu" or t.dtype != dt for t in (transforms, canonical, quats))
+        or skin_matrix.layout != torch.sparse_coo
+        or not skin_matrix.is_coalesced()
+        or 0 in canonical.shape
+    ):
         return None
     set_threads()
     crow, col, val, *_ = _csr_parts(skin_matrix)
     B, N = canonical.shape[:2]
     T = transforms[:, :, :3, :].reshape(B, -1, 12).contiguous().numpy()
     means, Q = torch.empty(B, N, 3, dtype=dt), torch.empty(B, N, 4, dtype=dt)
-    bad = _pose_lbs(crow, col, val.astype(np.float64), T, canonical.detach().contiguous().numpy(),
-                    quats.detach().contiguous().numpy(), float(tol), int(max_iters), float(min_det), means.numpy(), Q.numpy())
+    bad = _pose_lbs(
+        crow,
+        col,
+        val.astype(np.float64),
+        T,
+        canonical.detach().contiguous().numpy(),
+        quats.detach().contiguous().numpy(),
+        float(tol),
+        int(max_iters),
+        float(min_det),
+        means.numpy(),
+        Q.numpy(),
+    )
     return None if bad else (means, Q)
-

@@ -49,8 +49,9 @@ class AvatarNet(nn.Module):
             lat = self.latent_norm(lat)
         return lat, enc.mu, enc.logvar
 
-    def forward(self, batch: FrameBatch, *, sh_degree: int | None = None, correctives: bool = True,
-                eps: Tensor | None = None) -> NetOutput:
+    def forward(
+        self, batch: FrameBatch, *, sh_degree: int | None = None, correctives: bool = True, eps: Tensor | None = None
+    ) -> NetOutput:
         """Posed Gaussians of a batch of frames, and the encoder's posterior when it ran.
 
         Args:
@@ -66,18 +67,35 @@ class AvatarNet(nn.Module):
         latents, mu, logvar = batch.latents, None, None
         if self.encoder is not None and latents is None:
             if batch.texture is None:
-                raise ValueError("batch.texture is required: the model encodes its appearance latents from it "
-                                 "(or give batch.latents)")
+                raise ValueError(
+                    "batch.texture is required: the model encodes its appearance latents from it "
+                    "(or give batch.latents)"
+                )
             latents, mu, logvar = self.latents(batch.texture, eps)
-        out = self.avatar(batch.pose, batch.root_rotation, batch.root_translation, batch.face, latents,
-                          sh_degree=sh_degree, correctives=correctives)
+        out = self.avatar(
+            batch.pose,
+            batch.root_rotation,
+            batch.root_translation,
+            batch.face,
+            latents,
+            sh_degree=sh_degree,
+            correctives=correctives,
+        )
         return NetOutput(out, mu, logvar)
 
 
 def build_net(scene: PreparedScene, mcfg: ModelConfig, seed: int) -> AvatarNet:
     torch.manual_seed(seed)
-    avatar = GaussianAvatar(scene.hierarchy, scene.masks, scene.capture.rig, scene.pca_local, scene.pca_global, mcfg,
-                            face_dim=scene.face_dim, seed=seed)
+    avatar = GaussianAvatar(
+        scene.hierarchy,
+        scene.masks,
+        scene.capture.rig,
+        scene.pca_local,
+        scene.pca_global,
+        mcfg,
+        face_dim=scene.face_dim,
+        seed=seed,
+    )
     if avatar.config.input_norm:
         m = scene.capture.motion
         frames = scene.capture.splits["train"].frames

@@ -42,9 +42,22 @@ UP_AXES: dict[str, np.ndarray] = {
 """Up axis of the written file -> rotation [3, 3] applied to our Z-up world (``R @ [0, 0, 1]`` = that axis)."""
 
 _PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
 }
 
 
@@ -66,8 +79,26 @@ class PlyGaussians(NamedTuple):
 def ply_property_names(num_sh: int) -> list[str]:
     """Property names of the standard layout for ``num_sh = (degree+1)^2`` coefficients."""
     rest = [f"f_rest_{i}" for i in range(3 * (num_sh - 1))]
-    return ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", *rest, "opacity",
-            "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    return [
+        "x",
+        "y",
+        "z",
+        "nx",
+        "ny",
+        "nz",
+        "f_dc_0",
+        "f_dc_1",
+        "f_dc_2",
+        *rest,
+        "opacity",
+        "scale_0",
+        "scale_1",
+        "scale_2",
+        "rot_0",
+        "rot_1",
+        "rot_2",
+        "rot_3",
+    ]
 
 
 def up_axis_rotation(up_axis: str) -> np.ndarray:
@@ -94,8 +125,9 @@ def sh_rotation(R: np.ndarray, num_sh: int) -> np.ndarray:
     return D
 
 
-def rotate_gaussians(R: np.ndarray, means: np.ndarray, quats: np.ndarray, sh: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def rotate_gaussians(
+    R: np.ndarray, means: np.ndarray, quats: np.ndarray, sh: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rotate Gaussians rigidly about the origin by ``R`` [3, 3].
 
     means [N, 3], quats [N, 4] wxyz, sh [N, K, 3] -> (R means, q_R * q, D sh) as float64
@@ -148,9 +180,13 @@ def write_ply(
         m, q, c = rotate_gaussians(R, m, q, c)
     o = np.clip(o, 1e-7, 1 - 1e-7)
     cols = [
-        m, np.zeros((N, 3)), c[:, 0, :],
+        m,
+        np.zeros((N, 3)),
+        c[:, 0, :],
         c[:, 1:, :].transpose(0, 2, 1).reshape(N, 3 * (K - 1)),  # channel-major
-        np.log(o / (1 - o))[:, None], np.log(np.maximum(s, 1e-30)), q,
+        np.log(o / (1 - o))[:, None],
+        np.log(np.maximum(s, 1e-30)),
+        q,
     ]
     data = np.concatenate(cols, axis=1).astype("<f4")
     names = ply_property_names(K)
@@ -164,8 +200,15 @@ def write_ply(
 
 def export_frame_ply(path: str | Path, out, frame: int = 0, up_axis: UpAxis = "z") -> None:
     """Write frame ``frame`` of an :class:`~gsavatar.models.avatar.AvatarOutput` (posed)."""
-    write_ply(path, out.means[frame], out.quats[frame], out.scales[frame], out.opacities[frame], out.sh[frame],
-              up_axis=up_axis)
+    write_ply(
+        path,
+        out.means[frame],
+        out.quats[frame],
+        out.scales[frame],
+        out.opacities[frame],
+        out.sh[frame],
+        up_axis=up_axis,
+    )
 
 
 def read_ply(path: str | Path) -> PlyGaussians:
@@ -197,7 +240,11 @@ def read_ply(path: str | Path) -> PlyGaussians:
     n_rest = sum(k.startswith("f_rest_") for k in names)
     K = 1 + n_rest // 3
     dc = col("f_dc_0", "f_dc_1", "f_dc_2")[:, None, :]
-    rest = col(*[f"f_rest_{i}" for i in range(n_rest)]).reshape(n, 3, K - 1).transpose(0, 2, 1) if n_rest else np.zeros((n, 0, 3))
+    rest = (
+        col(*[f"f_rest_{i}" for i in range(n_rest)]).reshape(n, 3, K - 1).transpose(0, 2, 1)
+        if n_rest
+        else np.zeros((n, 0, 3))
+    )
     q = col("rot_0", "rot_1", "rot_2", "rot_3")
     q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
     return PlyGaussians(
@@ -213,4 +260,10 @@ def read_ply(path: str | Path) -> PlyGaussians:
 def ply_to_torch(g: PlyGaussians, device: torch.device | str = "cpu") -> dict[str, Tensor]:
     """Tensors ready for ``render.rasterize`` (means, quats, scales, opacities, colors=sh)."""
     t = lambda a: torch.as_tensor(a, device=device)  # noqa: E731
-    return {"means": t(g.means), "quats": t(g.quats), "scales": t(g.scales), "opacities": t(g.opacities), "colors": t(g.sh)}
+    return {
+        "means": t(g.means),
+        "quats": t(g.quats),
+        "scales": t(g.scales),
+        "opacities": t(g.opacities),
+        "colors": t(g.sh),
+    }

@@ -76,8 +76,9 @@ class PoseHead(nn.Module):
         """
         return np.ones_like(np.asarray(localized, bool))
 
-    def forward(self, avatar: GaussianAvatar, pose: Tensor, face: Tensor | None, latents: Tensor | None,
-                n_sh_rest: int) -> PoseDeltas:
+    def forward(
+        self, avatar: GaussianAvatar, pose: Tensor, face: Tensor | None, latents: Tensor | None, n_sh_rest: int
+    ) -> PoseDeltas:
         """Deltas of one batch of frames.
 
         Args:
@@ -103,9 +104,15 @@ class AnchorMLPHead(PoseHead):
         self.n_basis, self.n_ctrl_basis = int(config.n_basis), int(config.n_ctrl_basis)
         self.center_correctives = bool(config.center_correctives)
         latent_dim = config.latent_dim if config.use_latent else 0
-        self.mlp = AnchorMLPs(hierarchy.num_anchors, pose_dim + config.face_dim + latent_dim,
-                              self.n_basis + self.n_ctrl_basis, config.hidden, config.mlp_out_init_scale, generator,
-                              init=config.mlp_init)
+        self.mlp = AnchorMLPs(
+            hierarchy.num_anchors,
+            pose_dim + config.face_dim + latent_dim,
+            self.n_basis + self.n_ctrl_basis,
+            config.hidden,
+            config.mlp_out_init_scale,
+            generator,
+            init=config.mlp_init,
+        )
 
     @staticmethod
     def input_mask(localized: np.ndarray, hand_slots: np.ndarray) -> np.ndarray:
@@ -123,19 +130,30 @@ class AnchorMLPHead(PoseHead):
         y = self.mlp(torch.cat([x, x.new_zeros(1, *x.shape[1:])], dim=0))
         return y[:-1] - y[-1:]
 
-    def forward(self, avatar: GaussianAvatar, pose: Tensor, face: Tensor | None, latents: Tensor | None,
-                n_sh_rest: int) -> PoseDeltas:
+    def forward(
+        self, avatar: GaussianAvatar, pose: Tensor, face: Tensor | None, latents: Tensor | None, n_sh_rest: int
+    ) -> PoseDeltas:
         coeffs = self.coefficients(avatar.anchor_inputs(pose, face, latents))  # [B, A, Bg + Bc]
         dev, dt, Bg = coeffs.device, coeffs.dtype, self.n_basis
         w_c = gm.sparse_interpolate(coeffs[..., Bg:], avatar.sparse_weights("ctrl_anchor", dev, dt))  # [B, C, Bc]
         ctrl = gm.basis_delta(avatar.ctrl_basis, w_c)
         d_a = self.anchor_sh0(avatar, coeffs[..., :Bg], latents)  # [B, A, 3] or None, both paths use it
         fast = interpolated_deltas_fast(  # inference on CPU: one pass, same numbers (tests)
-            coeffs[..., :Bg], avatar.sparse_weights("gauss_anchor", dev, dt), avatar.gauss_pos_basis,
-            avatar.scale_basis, avatar.rotation_basis, avatar.sh0_basis, avatar.shn_basis, n_sh_rest, d_a)
+            coeffs[..., :Bg],
+            avatar.sparse_weights("gauss_anchor", dev, dt),
+            avatar.gauss_pos_basis,
+            avatar.scale_basis,
+            avatar.rotation_basis,
+            avatar.sh0_basis,
+            avatar.shn_basis,
+            n_sh_rest,
+            d_a,
+        )
         if fast is not None:
             pos, scale, rot, sh0, shn = fast
-            return PoseDeltas(ctrl=ctrl, position=pos, scale=scale, rotation=rot, sh0=sh0, shn=shn if n_sh_rest else None)
+            return PoseDeltas(
+                ctrl=ctrl, position=pos, scale=scale, rotation=rot, sh0=sh0, shn=shn if n_sh_rest else None
+            )
         w_g = gm.sparse_interpolate(coeffs[..., :Bg], avatar.sparse_weights("gauss_anchor", dev, dt))  # [B, G, Bg]
         return PoseDeltas(
             ctrl=ctrl,
@@ -192,16 +210,23 @@ class UVDecoderHead(PoseHead):
         super().__init__()
         uv = hierarchy.gaussians.uv
         if uv is None:
-            raise ValueError(f"variant {config.variant!r} (nRFGCA-dagger) needs UV coordinates of the Gaussians; "
-                             "the hierarchy has none (template without UVs?)")
+            raise ValueError(
+                f"variant {config.variant!r} (nRFGCA-dagger) needs UV coordinates of the Gaussians; "
+                "the hierarchy has none (template without UVs?)"
+            )
         self.face_dim = int(config.face_dim)
         self.register_buffer("gauss_uv", torch.as_tensor(np.asarray(uv), dtype=torch.float32))  # [G, 2] OBJ convention
         self.split_sizes = [3, 3, 4, 3, (config.num_sh - 1) * 3]  # position, scale, rotation, SH0, higher SH
-        self.uv_decoder = UVDecoder(pose_dim + self.face_dim, sum(self.split_sizes), config.uv_decoder_size,
-                                    first_channels=config.uv_decoder_channels)
+        self.uv_decoder = UVDecoder(
+            pose_dim + self.face_dim,
+            sum(self.split_sizes),
+            config.uv_decoder_size,
+            first_channels=config.uv_decoder_channels,
+        )
 
-    def forward(self, avatar: GaussianAvatar, pose: Tensor, face: Tensor | None, latents: Tensor | None,
-                n_sh_rest: int) -> PoseDeltas:
+    def forward(
+        self, avatar: GaussianAvatar, pose: Tensor, face: Tensor | None, latents: Tensor | None, n_sh_rest: int
+    ) -> PoseDeltas:
         x = avatar.conditioning_pose(pose)  # [B, P]
         if self.face_dim:
             x = torch.cat([x, face.to(x.dtype) if face is not None else x.new_zeros(x.shape[0], self.face_dim)], 1)

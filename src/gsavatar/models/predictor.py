@@ -273,8 +273,13 @@ class InitialLatentNet(nn.Module):
     def __init__(self, in_dim: int, num_anchors: int, latent_dim: int, hidden: int = 128) -> None:
         super().__init__()
         self.num_anchors, self.latent_dim = int(num_anchors), int(latent_dim)
-        self.net = nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
-                                 nn.Linear(hidden, num_anchors * latent_dim))
+        self.net = nn.Sequential(
+            nn.Linear(in_dim, hidden),
+            nn.ReLU(),
+            nn.Linear(hidden, hidden),
+            nn.ReLU(),
+            nn.Linear(hidden, num_anchors * latent_dim),
+        )
         nn.init.zeros_(self.net[-1].weight)
         nn.init.zeros_(self.net[-1].bias)
 
@@ -297,26 +302,41 @@ class AppearancePredictor(nn.Module):
             ``config.joint_tokens`` (joint positions come from its forward kinematics), ignored otherwise.
     """
 
-    def __init__(self, config: PredictorConfig, num_anchors: int, pose_slots: Sequence[int] | np.ndarray | Tensor,
-                 pose_dim: int, pose_pca: tuple | None = None, seed: int = 0,
-                 kinematics: KinematicChain | tuple | None = None) -> None:
+    def __init__(
+        self,
+        config: PredictorConfig,
+        num_anchors: int,
+        pose_slots: Sequence[int] | np.ndarray | Tensor,
+        pose_dim: int,
+        pose_pca: tuple | None = None,
+        seed: int = 0,
+        kinematics: KinematicChain | tuple | None = None,
+    ) -> None:
         super().__init__()
         c = config
         if c.history < (3 if c.velocities else 1):
-            raise ValueError(f"config.history must be >= 3 (value, velocity, acceleration) or >= 1 without "
-                             f"velocities, got {c.history} (velocities={c.velocities})")
+            raise ValueError(
+                f"config.history must be >= 3 (value, velocity, acceleration) or >= 1 without "
+                f"velocities, got {c.history} (velocities={c.velocities})"
+            )
         if c.width % c.heads:
             raise ValueError(f"config.width ({c.width}) must be divisible by config.heads ({c.heads})")
         if c.latent_pca not in ("anchor", "global"):
             raise ValueError(f"config.latent_pca must be 'anchor' or 'global', got {c.latent_pca!r}")
         if c.latent_pca == "anchor" and not 0 <= c.latent_pca_components <= c.latent_dim:
-            raise ValueError(f"config.latent_pca_components must be in [0, {c.latent_dim}], got {c.latent_pca_components}")
+            raise ValueError(
+                f"config.latent_pca_components must be in [0, {c.latent_dim}], got {c.latent_pca_components}"
+            )
         if c.latent_pca == "global" and not 0 < c.latent_pca_components <= num_anchors * c.latent_dim:
-            raise ValueError(f"config.latent_pca_components must be in [1, {num_anchors * c.latent_dim}] with a global "
-                             f"latent PCA, got {c.latent_pca_components}")
+            raise ValueError(
+                f"config.latent_pca_components must be in [1, {num_anchors * c.latent_dim}] with a global "
+                f"latent PCA, got {c.latent_pca_components}"
+            )
         slots = torch.as_tensor(np.asarray(pose_slots), dtype=torch.long).reshape(-1)
         if slots.numel() and (slots.min() < 0 or slots.max() >= pose_dim):
-            raise ValueError(f"pose_slots must index [0, {pose_dim}), got range [{int(slots.min())}, {int(slots.max())}]")
+            raise ValueError(
+                f"pose_slots must index [0, {pose_dim}), got range [{int(slots.min())}, {int(slots.max())}]"
+            )
         self.config, self.num_anchors, self.pose_dim = c, int(num_anchors), int(pose_dim)
         A, L, D = self.num_anchors, c.latent_dim, c.width
         K = c.latent_pca_components if c.latent_pca == "anchor" else 0
@@ -367,8 +387,9 @@ class AppearancePredictor(nn.Module):
             if J:
                 self.joint_tokens = AnchorMLPs(J, 3 * Fdim, D, (c.token_hidden,), generator=gen)
                 self.joint_type_embedding = nn.Parameter(torch.zeros(D))
-            layer = nn.TransformerEncoderLayer(D, c.heads, c.ff, c.dropout, activation="gelu", batch_first=True,
-                                               norm_first=True)
+            layer = nn.TransformerEncoderLayer(
+                D, c.heads, c.ff, c.dropout, activation="gelu", batch_first=True, norm_first=True
+            )
             self.transformer = nn.TransformerEncoder(layer, c.blocks, enable_nested_tensor=False)
             self.norm = nn.LayerNorm(D)
             self.head = nn.Linear(D, L)
@@ -408,8 +429,12 @@ class AppearancePredictor(nn.Module):
         B, N, P = pose_window.shape
         if self._rig.heads.device != pose_window.device:  # built on the CPU; follow the inputs
             self._rig = RigTensors(self.chain, pose_window.device)
-        T = skinning_transforms(self._rig, pose_window.reshape(B * N, P), root_rot_window.reshape(B * N, 3),
-                                root_trans_window.reshape(B * N, 3))  # [B*N, J, 4, 4]
+        T = skinning_transforms(
+            self._rig,
+            pose_window.reshape(B * N, P),
+            root_rot_window.reshape(B * N, 3),
+            root_trans_window.reshape(B * N, 3),
+        )  # [B*N, J, 4, 4]
         heads = self._rig.heads.to(T)
         joints = ((T[..., :3, :3] @ heads[None, :, :, None])[..., 0] + T[..., :3, 3]).reshape(B, N, -1, 3)
         q = heading_frame(joints, T.reshape(B, N, -1, 4, 4)[:, -1, self.root_joint, :3, :3])  # [B, N, J, 3]
@@ -418,16 +443,18 @@ class AppearancePredictor(nn.Module):
         f = window_features(x) if self.config.velocities else x.transpose(1, 2)  # [B, 3J, F]
         return f.reshape(B, 3, J, -1).permute(0, 2, 1, 3).reshape(B, J, -1)  # [B, J, 3F]: x block, y, z
 
-    def input_features(self, pose_window: Tensor, root_rot_window: Tensor,
-                       root_trans_window: Tensor) -> tuple[Tensor, Tensor | None]:
+    def input_features(
+        self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor
+    ) -> tuple[Tensor, Tensor | None]:
         """Raw features of every token kind: (pose slots [B, S, F], joints [B, J, 3F] or None)."""
         x = self.features(pose_window, root_rot_window, root_trans_window)
         xj = self.joint_features(pose_window, root_rot_window, root_trans_window) if self.chain is not None else None
         return x, xj
 
     @torch.no_grad()
-    def fit_input_normalization(self, features: Tensor, joint_features: Tensor | None = None,
-                                min_std: float = 1e-6) -> None:
+    def fit_input_normalization(
+        self, features: Tensor, joint_features: Tensor | None = None, min_std: float = 1e-6
+    ) -> None:
         """Standardise each (slot, feature) with training statistics; constant ones are dropped.
 
         features [n, S, 3N-3] as returned by :meth:`features`; ``joint_features`` [n, J, 3 (3N-3)] from
@@ -488,8 +515,9 @@ class AppearancePredictor(nn.Module):
         return latent_pca_project(latents, self.latent_mean, self.latent_basis, self.latent_limit)
 
     # ------------------------------------------------------------------ forward
-    def forward(self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor,
-                prev_latents: Tensor) -> Tensor:
+    def forward(
+        self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor, prev_latents: Tensor
+    ) -> Tensor:
         """Latents of the window's last frame t.
 
         pose_window [B, N_b, P] (frames t-N_b+1..t), root_rot_window [B, N_b, 3],
@@ -506,13 +534,14 @@ class AppearancePredictor(nn.Module):
         lat = (prev_latents - self.latent_mean) / self.latent_scale  # [B, A, L] standardised
         parts = [self.pose_tokens(x) + self.type_embedding[0]]
         if xj is not None:
-            parts.append(self.joint_tokens((xj - self.joint_feature_mean) * self.joint_feature_scale)
-                         + self.joint_type_embedding)
+            parts.append(
+                self.joint_tokens((xj - self.joint_feature_mean) * self.joint_feature_scale) + self.joint_type_embedding
+            )
         parts.append(self.latent_tokens(lat) + self.type_embedding[1])
         tokens = torch.cat(parts, 1)  # [B, S + J + A, D]
         h = self.norm(self.transformer(tokens + self.positional.to(tokens)))
         base = prev_latents if self.config.residual else self.latent_mean
-        out = base + self.latent_scale * self.head(h[:, self.num_slots + self.num_joints:])  # [B, A, L]
+        out = base + self.latent_scale * self.head(h[:, self.num_slots + self.num_joints :])  # [B, A, L]
         return self.clamp_latents(out)
 
     # ------------------------------------------------------------------ initial latents
@@ -535,8 +564,9 @@ class AppearancePredictor(nn.Module):
 
     # ------------------------------------------------------------------ streaming
     @torch.no_grad()
-    def init_state(self, first_pose: Tensor, first_root_rot: Tensor, first_root_trans: Tensor,
-                   init_latents: Tensor | None = None) -> RolloutState:
+    def init_state(
+        self, first_pose: Tensor, first_root_rot: Tensor, first_root_trans: Tensor, init_latents: Tensor | None = None
+    ) -> RolloutState:
         """History = the first frame repeated N_b times; previous latents = ``init_latents`` [A, L]
         or, when None, :meth:`initial_latents` (the trained InitialLatentNet, else zeros)."""
         N = self.config.history
@@ -550,7 +580,9 @@ class AppearancePredictor(nn.Module):
         return RolloutState(rep(first_pose), rep(first_root_rot), rep(first_root_trans), init_latents.clone())
 
     @torch.no_grad()
-    def step(self, state: RolloutState, pose: Tensor, root_rot: Tensor, root_trans: Tensor) -> tuple[Tensor, RolloutState]:
+    def step(
+        self, state: RolloutState, pose: Tensor, root_rot: Tensor, root_trans: Tensor
+    ) -> tuple[Tensor, RolloutState]:
         """Push frame t (pose [P], root_rot [3], root_trans [3]) and predict its latents.
 
         -> (latents [A, L], new state). Uses the module's current mode (call ``.eval()`` with dropout).
@@ -564,9 +596,16 @@ class AppearancePredictor(nn.Module):
         return lat, RolloutState(p, r, t, lat)
 
     @torch.no_grad()
-    def rollout(self, poses: Tensor, root_rot: Tensor, root_trans: Tensor, init_latents: Tensor | None = None,
-                reinit_every: int = 0, reinit_latents: Callable[[int], Tensor] | None = None,
-                first_is_given: bool = False) -> Tensor:
+    def rollout(
+        self,
+        poses: Tensor,
+        root_rot: Tensor,
+        root_trans: Tensor,
+        init_latents: Tensor | None = None,
+        reinit_every: int = 0,
+        reinit_latents: Callable[[int], Tensor] | None = None,
+        first_is_given: bool = False,
+    ) -> Tensor:
         """Free-running prediction over a sequence, one :meth:`step` per frame.
 
         poses [T, P], root_rot [T, 3], root_trans [T, 3]; ``init_latents`` [A, L]: the

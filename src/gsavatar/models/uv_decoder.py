@@ -30,8 +30,15 @@ def decoder_channels(first: int, last: int, n_up: int) -> list[int]:
 class UVDecoder(nn.Module):
     """Pose (+ face) vector ``[B, D]`` -> UV property map ``[B, n_out, S, S]``."""
 
-    def __init__(self, in_dim: int, out_channels: int, size: int = 128, start_size: int = 8,
-                 first_channels: int = 128, last_channels: int = 32) -> None:
+    def __init__(
+        self,
+        in_dim: int,
+        out_channels: int,
+        size: int = 128,
+        start_size: int = 8,
+        first_channels: int = 128,
+        last_channels: int = 32,
+    ) -> None:
         super().__init__()
         if in_dim <= 0 or out_channels <= 0:
             raise ValueError(f"in_dim and out_channels must be > 0, got {in_dim}, {out_channels}")

@@ -11,6 +11,20 @@ from gsavatar.motion.resample import ResampleTimes, resample_motion, resample_ti
 from gsavatar.motion.retarget import RetargetedMotion, UndrivenJointsWarning, motion_from_bvh_file, retarget_bvh
 from gsavatar.motion.rig_pose import pose_from_local_rotations
 
-__all__ = ["AmassMotion", "BvhMotion", "JointMatch", "ResampleTimes", "RetargetedMotion", "UndrivenJointsWarning",
-           "match_joints", "motion_from_bvh_file", "pose_from_local_rotations", "read_amass", "read_bvh",
-           "read_joint_map", "resample_motion", "resample_times", "retarget_bvh"]
+__all__ = [
+    "AmassMotion",
+    "BvhMotion",
+    "JointMatch",
+    "ResampleTimes",
+    "RetargetedMotion",
+    "UndrivenJointsWarning",
+    "match_joints",
+    "motion_from_bvh_file",
+    "pose_from_local_rotations",
+    "read_amass",
+    "read_bvh",
+    "read_joint_map",
+    "resample_motion",
+    "resample_times",
+    "retarget_bvh",
+]

@@ -37,10 +37,37 @@ from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.io import read_npz
 
 SMPLX_JOINT_ORDER: tuple[str, ...] = (
-    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle", "right_ankle",
-    "spine3", "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head", "left_shoulder",
-    "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist", "jaw", "left_eye", "right_eye",
-    *(f"{s}_{f}{i}" for s in ("left", "right") for f in ("index", "middle", "pinky", "ring", "thumb") for i in (1, 2, 3)),
+    "pelvis",
+    "left_hip",
+    "right_hip",
+    "spine1",
+    "left_knee",
+    "right_knee",
+    "spine2",
+    "left_ankle",
+    "right_ankle",
+    "spine3",
+    "left_foot",
+    "right_foot",
+    "neck",
+    "left_collar",
+    "right_collar",
+    "head",
+    "left_shoulder",
+    "right_shoulder",
+    "left_elbow",
+    "right_elbow",
+    "left_wrist",
+    "right_wrist",
+    "jaw",
+    "left_eye",
+    "right_eye",
+    *(
+        f"{s}_{f}{i}"
+        for s in ("left", "right")
+        for f in ("index", "middle", "pinky", "ring", "thumb")
+        for i in (1, 2, 3)
+    ),
 )
 """SMPL-X's 55 joints in model order (the order of ``poses``; ``importers.smplx_model.SMPLX_JOINT_NAMES``)."""
 
@@ -75,13 +102,20 @@ def check_smplx_rig(rig: Rig, path: str | Path) -> None:
     """SchemaError(path, 'poses') unless ``rig`` is the importers' SMPL-X rig: SMPL-X's 55 joints in model order,
     one ``axis_angle`` parameter per non-root joint in joint order."""
     names = tuple(j.name for j in rig.joints)
-    ok = names == SMPLX_JOINT_ORDER and len(rig.params) == len(names) - 1 and all(
-        p.kind == "axis_angle" and p.joint == n for p, n in zip(rig.params, names[1:]))
+    ok = (
+        names == SMPLX_JOINT_ORDER
+        and len(rig.params) == len(names) - 1
+        and all(p.kind == "axis_angle" and p.joint == n for p, n in zip(rig.params, names[1:]))
+    )
     if not ok:
-        raise SchemaError(path, "poses", f"an AMASS SMPL-X motion drives SMPL-X rigs only (55 joints in SMPL-X order, one "
-                                         f"axis_angle parameter each: an avatar-prep import capture); this avatar's rig has "
-                                         f"{len(names)} joints ({', '.join(names[:4])}, ...) and pose dimension "
-                                         f"{rig.pose_dim}: drive it from a BVH file instead")
+        raise SchemaError(
+            path,
+            "poses",
+            f"an AMASS SMPL-X motion drives SMPL-X rigs only (55 joints in SMPL-X order, one "
+            f"axis_angle parameter each: an avatar-prep import capture); this avatar's rig has "
+            f"{len(names)} joints ({', '.join(names[:4])}, ...) and pose dimension "
+            f"{rig.pose_dim}: drive it from a BVH file instead",
+        )
 
 
 def _array(z: dict, path: Path, key: str, width: int) -> np.ndarray:

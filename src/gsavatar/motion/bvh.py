@@ -192,7 +192,9 @@ def _parse_joint(tk: _Tokens, name: str, parent: int, out: dict, depth: int = 0)
             try:
                 n = int(ct)
             except ValueError:
-                raise SchemaError(tk.path, f"line {cl}", f"{name}.CHANNELS: expected a channel count, got {ct!r}") from None
+                raise SchemaError(
+                    tk.path, f"line {cl}", f"{name}.CHANNELS: expected a channel count, got {ct!r}"
+                ) from None
             if not 0 <= n <= 6:
                 raise SchemaError(tk.path, f"line {cl}", f"{name}.CHANNELS: count must be 0..6, got {n}")
             chans = []
@@ -201,7 +203,9 @@ def _parse_joint(tk: _Tokens, name: str, parent: int, out: dict, depth: int = 0)
                 c = tk.next(f"channel {k + 1} of {n} for {name}")
                 if c not in _ALL_CHANNELS:
                     raise SchemaError(
-                        tk.path, f"line {kl}", f"{name}.CHANNELS: unknown channel {c!r} (declared {n} channels; valid: {list(_ALL_CHANNELS)})"
+                        tk.path,
+                        f"line {kl}",
+                        f"{name}.CHANNELS: unknown channel {c!r} (declared {n} channels; valid: {list(_ALL_CHANNELS)})",
                     )
                 if c in chans:
                     raise SchemaError(tk.path, f"line {kl}", f"{name}.CHANNELS: channel {c!r} listed twice")
@@ -218,7 +222,11 @@ def _parse_joint(tk: _Tokens, name: str, parent: int, out: dict, depth: int = 0)
             tk.expect("}")
             out["end_sites"].append((idx, off))
         else:
-            raise SchemaError(tk.path, f"line {ln}", f"unexpected {t!r} in joint {name!r} (expected OFFSET, CHANNELS, JOINT, End Site or '}}')")
+            raise SchemaError(
+                tk.path,
+                f"line {ln}",
+                f"unexpected {t!r} in joint {name!r} (expected OFFSET, CHANNELS, JOINT, End Site or '}}')",
+            )
     if not seen_offset:
         raise SchemaError(tk.path, f"line {tk.line()}", f"joint {name!r} has no OFFSET")
 
@@ -276,13 +284,18 @@ def read_bvh(path: str | Path) -> BvhMotion:
     if not np.isfinite(frame_time) or frame_time <= 0:
         raise SchemaError(path, f"line {i + 1}", f"Frame Time: must be > 0, got {ft}")
     if not 1.0 / MAX_FPS <= frame_time <= 1.0 / MIN_FPS:
-        raise SchemaError(path, f"line {i + 1}", f"Frame Time: {ft} s per frame ({1.0 / frame_time:g} fps) is outside "
-                                                 f"[{1.0 / MAX_FPS:g}, {1.0 / MIN_FPS:g}] s ({MIN_FPS:g}..{MAX_FPS:g} fps)")
+        raise SchemaError(
+            path,
+            f"line {i + 1}",
+            f"Frame Time: {ft} s per frame ({1.0 / frame_time:g} fps) is outside "
+            f"[{1.0 / MAX_FPS:g}, {1.0 / MIN_FPS:g}] s ({MIN_FPS:g}..{MAX_FPS:g} fps)",
+        )
     i += 1
     rows = sum(1 for ln in range(i, len(lines)) if lines[ln].strip())
     if rows < F:  # before allocating [F, C]: 'Frames: 10**12' with two rows must not ask for terabytes
-        raise SchemaError(path, f"line {len(lines)}",
-                          f"MOTION truncated: 'Frames: {F}' declared but only {rows} frame rows found")
+        raise SchemaError(
+            path, f"line {len(lines)}", f"MOTION truncated: 'Frames: {F}' declared but only {rows} frame rows found"
+        )
 
     # --- frame rows ----------------------------------------------------------------
     motion = np.empty((F, C), dtype=np.float64)
@@ -298,7 +311,9 @@ def read_bvh(path: str | Path) -> BvhMotion:
             warnings.warn(f"{path}: line {ln + 1}: {extra} frame row(s) beyond 'Frames: {F}' ignored", stacklevel=2)
             break
         if len(s) != C:
-            raise SchemaError(path, f"line {ln + 1}", f"frame {f} has {len(s)} values, the hierarchy declares {C} channels")
+            raise SchemaError(
+                path, f"line {ln + 1}", f"frame {f} has {len(s)} values, the hierarchy declares {C} channels"
+            )
         try:
             row = np.array(s, dtype=np.float64)
         except ValueError:

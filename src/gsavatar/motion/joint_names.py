@@ -107,8 +107,12 @@ class JointMatch:
     """Canonical name of each rig joint (hand/face classification: :func:`is_extremity`)."""
 
 
-def match_joints(rig_names: Sequence[str], motion_names: Sequence[str],
-                 overrides: Mapping[str, str | None] | None = None, overrides_file: str | Path = "joint map") -> JointMatch:
+def match_joints(
+    rig_names: Sequence[str],
+    motion_names: Sequence[str],
+    overrides: Mapping[str, str | None] | None = None,
+    overrides_file: str | Path = "joint map",
+) -> JointMatch:
     """Match rig joints to motion joints (module docstring).
 
     overrides: rig joint name -> motion joint name (or None: driven by nothing), from the user's joint map or
@@ -129,7 +133,9 @@ def match_joints(rig_names: Sequence[str], motion_names: Sequence[str],
         if m not in mot_idx:
             raise SchemaError(overrides_file, r, f"the motion has no joint {m!r} (motion joints: {list(motion_names)})")
         if mot_idx[m] in used:
-            raise SchemaError(overrides_file, r, f"motion joint {m!r} is already given to rig joint {used[mot_idx[m]]!r}")
+            raise SchemaError(
+                overrides_file, r, f"motion joint {m!r} is already given to rig joint {used[mot_idx[m]]!r}"
+            )
         out[rig_idx[r]] = mot_idx[m]
         used[mot_idx[m]] = r
     rc, mc = detect_convention(rig_names), detect_convention(motion_names)
@@ -152,7 +158,9 @@ def read_joint_map(path: str | Path) -> dict[str, str | None]:
     path = Path(path)
     obj = read_json(path)
     if not isinstance(obj, dict):
-        raise SchemaError(path, "", f"expected a JSON object mapping rig joints to motion joints, got {type(obj).__name__}")
+        raise SchemaError(
+            path, "", f"expected a JSON object mapping rig joints to motion joints, got {type(obj).__name__}"
+        )
     if not obj:
         raise SchemaError(path, "", "empty joint map")
     for k, v in obj.items():

@@ -57,8 +57,10 @@ def resample_times(n_in: int, fps_in: float, fps_out: float) -> ResampleTimes:
     ratio = fps_in / fps_out
     n_out = int(math.floor((n_in - 1) / ratio + 1e-6)) + 1
     if n_out > MAX_RESAMPLED_FRAMES:
-        raise ValueError(f"resampling {n_in} frames from {fps_in:g} to {fps_out:g} fps makes {n_out} frames, "
-                         f"more than the {MAX_RESAMPLED_FRAMES} allowed")
+        raise ValueError(
+            f"resampling {n_in} frames from {fps_in:g} to {fps_out:g} fps makes {n_out} frames, "
+            f"more than the {MAX_RESAMPLED_FRAMES} allowed"
+        )
     s = np.arange(n_out, dtype=np.float64) * ratio
     i0 = np.floor(s + 1e-6).astype(np.int64)
     a = s - i0
@@ -146,6 +148,7 @@ def lerp_frames(x: np.ndarray, t: ResampleTimes) -> np.ndarray:
     a = t.alpha.reshape(-1, *([1] * (x.ndim - 1)))
     return (1.0 - a) * x[t.i0] + a * x[t.i1]
 
+
 def slerp_matrices(R: np.ndarray, t: ResampleTimes) -> np.ndarray:
     """Shortest-arc slerp of per-frame rotation matrices at the output times; output frames on a source
     frame are copied exactly. R [T_in, ..., 3, 3] -> [T_out, ..., 3, 3] float64"""
@@ -161,9 +164,15 @@ def slerp_matrices(R: np.ndarray, t: ResampleTimes) -> np.ndarray:
     return out
 
 
-def resample_motion(pose: np.ndarray, root_rotation: np.ndarray, root_translation: np.ndarray,
-                    face: np.ndarray | None, rig: Rig, fps_in: float, fps_out: float
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, ResampleTimes]:
+def resample_motion(
+    pose: np.ndarray,
+    root_rotation: np.ndarray,
+    root_translation: np.ndarray,
+    face: np.ndarray | None,
+    rig: Rig,
+    fps_in: float,
+    fps_out: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, ResampleTimes]:
     """Rotation-aware resampling (module docstring). pose [T,P], root_rotation [T,3],
     root_translation [T,3], face [T,E] | None -> the same at ``fps_out`` (float32) + the times.
     Output frames that land on a source frame are copied bit-exactly."""
@@ -182,7 +191,9 @@ def resample_motion(pose: np.ndarray, root_rotation: np.ndarray, root_translatio
                 e0, e1 = pose[i0][:, sl] * signs, pose[i1][:, sl] * signs
                 q = quat_slerp(Rotation.from_euler(seq, e0).as_quat(), Rotation.from_euler(seq, e1).as_quat(), a)
                 ref = (1 - a[:, None]) * e0 + a[:, None] * e1
-                new_pose[np.ix_(moving, sl)] = euler_from_matrix_near(Rotation.from_quat(q).as_matrix(), seq, ref) * signs
+                new_pose[np.ix_(moving, sl)] = (
+                    euler_from_matrix_near(Rotation.from_quat(q).as_matrix(), seq, ref) * signs
+                )
     rr = np.asarray(root_rotation, np.float64)
     new_rr = rr[t.i0].copy()
     if moving.any():

@@ -126,7 +126,15 @@ def _rig_children(rig: Rig) -> list[list[int]]:
     return out
 
 
-def _bone_pairs(j: int, children: list[list[int]], to_bvh: dict[int, int], heads: np.ndarray, bvh_rest: np.ndarray, eps_o: float, eps_b: float):
+def _bone_pairs(
+    j: int,
+    children: list[list[int]],
+    to_bvh: dict[int, int],
+    heads: np.ndarray,
+    bvh_rest: np.ndarray,
+    eps_o: float,
+    eps_b: float,
+):
     """(our rest vector, BVH rest vector) pairs from joint j towards its nearest matched descendants.
 
     An unmatched child (e.g. SMPL-X's spine2 under a Biovision skeleton's Ab -> Chest) and a child at (near)
@@ -159,8 +167,15 @@ def _leg_length(points: np.ndarray, idx: dict[str, int]) -> float | None:
     return total / n if n else None
 
 
-def _check_undriven(rig: Rig, bvh: BvhMotion, to_bvh: dict[int, int], canonical: tuple[str, ...], root: int,
-                    max_undriven: float, conventions: tuple[str | None, str | None]) -> tuple[str, ...]:
+def _check_undriven(
+    rig: Rig,
+    bvh: BvhMotion,
+    to_bvh: dict[int, int],
+    canonical: tuple[str, ...],
+    root: int,
+    max_undriven: float,
+    conventions: tuple[str | None, str | None],
+) -> tuple[str, ...]:
     """Warn about rig joints with parameters that no BVH joint drives; SchemaError(BVH) when more than
     ``max_undriven`` of the body joints among them are undriven. -> the undriven joint names."""
     with_params = sorted({rig.joint_index(p.joint) for p in rig.params} - {root})
@@ -168,18 +183,27 @@ def _check_undriven(rig: Rig, bvh: BvhMotion, to_bvh: dict[int, int], canonical:
     names = tuple(rig.joints[j].name for j in undriven)
     body = [j for j in with_params if not is_extremity(canonical[j])]
     body_undriven = [rig.joints[j].name for j in body if j not in to_bvh]
-    where = (f"(rig names read as {conventions[0] or 'no known convention'}, BVH names as "
-             f"{conventions[1] or 'no known convention'}")
+    where = (
+        f"(rig names read as {conventions[0] or 'no known convention'}, BVH names as "
+        f"{conventions[1] or 'no known convention'}"
+    )
     if body and len(body_undriven) > max_undriven * len(body):
-        raise SchemaError(bvh.path or "BVH", "joints",
-                          f"{len(body_undriven)} of the rig's {len(body)} body joints are driven by no BVH joint: "
-                          f"{body_undriven} {where}; BVH joints: {bvh.names}); map them with a joint map "
-                          "(--joint-map FILE, docs/import.md)")
+        raise SchemaError(
+            bvh.path or "BVH",
+            "joints",
+            f"{len(body_undriven)} of the rig's {len(body)} body joints are driven by no BVH joint: "
+            f"{body_undriven} {where}; BVH joints: {bvh.names}); map them with a joint map "
+            "(--joint-map FILE, docs/import.md)",
+        )
     if names:
         extra = [n for n in names if n not in body_undriven]
-        warnings.warn(f"{bvh.path or 'BVH'}: {len(names)} of the rig's {len(with_params)} posed joints are driven by no "
-                      f"BVH joint and keep their rest rotation relative to their parent: body joints {body_undriven}, "
-                      f"hand/face joints {extra} {where})", UndrivenJointsWarning, stacklevel=3)
+        warnings.warn(
+            f"{bvh.path or 'BVH'}: {len(names)} of the rig's {len(with_params)} posed joints are driven by no "
+            f"BVH joint and keep their rest rotation relative to their parent: body joints {body_undriven}, "
+            f"hand/face joints {extra} {where})",
+            UndrivenJointsWarning,
+            stacklevel=3,
+        )
     return names
 
 
@@ -226,10 +250,15 @@ def retarget_bvh(
     if any(p.joint == rig.joints[root].name for p in rig.params):
         raise ValueError("the root joint must have no pose params (its motion is root_rotation)")
     if root not in to_bvh:
-        raise SchemaError(bvh.path or "BVH", "joints", f"the rig root {rig.joints[root].name!r} has no BVH joint "
-                          f"(BVH joints: {bvh.names}); map it with a joint map (--joint-map FILE)")
-    undriven = _check_undriven(rig, bvh, to_bvh, canonical, root, max_undriven,
-                               (match.rig_convention, match.motion_convention))
+        raise SchemaError(
+            bvh.path or "BVH",
+            "joints",
+            f"the rig root {rig.joints[root].name!r} has no BVH joint "
+            f"(BVH joints: {bvh.names}); map it with a joint map (--joint-map FILE)",
+        )
+    undriven = _check_undriven(
+        rig, bvh, to_bvh, canonical, root, max_undriven, (match.rig_convention, match.motion_convention)
+    )
 
     # --- scale: ratio of leg lengths ----------------------------------------------------
     bvh_rest = bvh_rest_positions(bvh)
@@ -313,7 +342,9 @@ def retarget_bvh(
 
     # --- pack ---------------------------------------------------------------------------
     pose = pose_from_local_rotations(L, rig)
-    moving = [rig.joints[j].name for j in to_bvh if j != root and not any(p.joint == rig.joints[j].name for p in rig.params)]
+    moving = [
+        rig.joints[j].name for j in to_bvh if j != root and not any(p.joint == rig.joints[j].name for p in rig.params)
+    ]
     if moving:
         warnings.warn(f"joints without pose params keep their rest orientation: {moving}", stacklevel=2)
     root_rot = Rotation.from_matrix(L[:, root]).as_rotvec()
@@ -357,6 +388,7 @@ def motion_from_bvh_file(
         check_resampled_frames(stop - start, _snap_fps(bvh.fps), float(fps_out), path, "MOTION")
     m = retarget_bvh(bvh, rig, None, fps_out, slice(start, stop), **kwargs)
     if count is not None and len(m.pose) > count:
-        m = m._replace(pose=m.pose[:count], root_rotation=m.root_rotation[:count],
-                       root_translation=m.root_translation[:count])
+        m = m._replace(
+            pose=m.pose[:count], root_rotation=m.root_rotation[:count], root_translation=m.root_translation[:count]
+        )
     return m

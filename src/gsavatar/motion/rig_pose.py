@@ -128,7 +128,7 @@ def pose_from_local_rotations(L: np.ndarray, rig: Rig) -> np.ndarray:
         slots = [s for s, _ in plist]
         aa = [s for s, p in plist if p.kind == "axis_angle"]
         if aa:  # that parameter carries the whole rotation, the others stay 0
-            pose[:, aa[0]:aa[0] + 3] = Rotation.from_matrix(L[:, j]).as_rotvec()
+            pose[:, aa[0] : aa[0] + 3] = Rotation.from_matrix(L[:, j]).as_rotvec()
             continue
         axes = np.array([p.axis for _, p in plist], dtype=np.float64)
         axes /= np.linalg.norm(axes, axis=1, keepdims=True)

@@ -1,10 +1,10 @@
 """``avatar-prep``: staged, resumable data preparation. Each stage is a subcommand.
 
-    avatar-prep synth --out cap --preset tiny
-    avatar-prep import --layout thuman4 --src subject00 --smplx-model SMPLX_NEUTRAL.npz --out cap
-    avatar-prep fit-body --capture cap --keypoints openpose_json --out cap_fitted
-    avatar-prep all --capture cap --out ds
-    avatar-prep verify ds
+avatar-prep synth --out cap --preset tiny
+avatar-prep import --layout thuman4 --src subject00 --smplx-model SMPLX_NEUTRAL.npz --out cap
+avatar-prep fit-body --capture cap --keypoints openpose_json --out cap_fitted
+avatar-prep all --capture cap --out ds
+avatar-prep verify ds
 """
 
 from __future__ import annotations
@@ -38,8 +38,12 @@ def stage_command(stage: Stage) -> type:
         run_stages(self, self.configs())
 
     name = "".join(w.capitalize() for w in stage.name.split("-"))  # uv-atlas -> UvAtlas
-    return dataclasses.make_dataclass(name, [], bases=(stage.config, StageArgs), namespace={
-        "configs": configs, "run": run, "__doc__": stage.config.__doc__, "__module__": __name__})
+    return dataclasses.make_dataclass(
+        name,
+        [],
+        bases=(stage.config, StageArgs),
+        namespace={"configs": configs, "run": run, "__doc__": stage.config.__doc__, "__module__": __name__},
+    )
 
 
 @dataclass

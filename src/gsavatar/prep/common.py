@@ -12,8 +12,17 @@ from pathlib import Path
 import tyro
 
 from gsavatar.data_schema import Capture, load_capture
-from gsavatar.data_schema.dataset import (NO_INPUTS, ShardStore, adopt_inputs, inputs_digest, plan_shards,
-                                          read_dataset_json, record_stage, stage_dir, stage_status)
+from gsavatar.data_schema.dataset import (
+    NO_INPUTS,
+    ShardStore,
+    adopt_inputs,
+    inputs_digest,
+    plan_shards,
+    read_dataset_json,
+    record_stage,
+    stage_dir,
+    stage_status,
+)
 from gsavatar.prep.sharding import RankInfo, barrier, config_hash, init_distributed, parse_shard_arg, run_sharded
 from gsavatar.utils.cli import set_resume_hint
 from gsavatar.utils.jsonio import config_to_json
@@ -68,8 +77,9 @@ def open_dataset(args: StageArgs) -> Path:
     return root
 
 
-def _should_run(stage: str, args: StageArgs, root: Path, config: dict, inputs: dict[str, str],
-                status: str | None) -> bool:
+def _should_run(
+    stage: str, args: StageArgs, root: Path, config: dict, inputs: dict[str, str], status: str | None
+) -> bool:
     """Whether to (re)compute, given :func:`stage_status`; says why when a recorded stage is recomputed.
     A record of an older gsavatar without an input fingerprint, whose outputs verify, adopts the current one."""
     if status == NO_INPUTS and not args.force and stage_status(root, stage, config) is None:
@@ -103,16 +113,25 @@ def run_single_file_stage(stage: str, args: StageArgs, config: dict, produce, in
     return True
 
 
-def run_frame_stage(stage: str, args: StageArgs, config: dict, frames: list[int], compute, inputs: dict[str, str],
-                    frame_inputs: Callable[[list[int]], dict[str, str]] | None = None) -> bool:
+def run_frame_stage(
+    stage: str,
+    args: StageArgs,
+    config: dict,
+    frames: list[int],
+    compute,
+    inputs: dict[str, str],
+    frame_inputs: Callable[[list[int]], dict[str, str]] | None = None,
+) -> bool:
     """Run a sharded per-frame stage (resumable, multi-rank). Returns True if the manifest is complete.
 
     ``inputs``: fingerprint of what every frame reads; ``frame_inputs(frames)``: of the per-frame files
     (images, masks). A shard whose fingerprint changed is recomputed, the others are resumed."""
     root = open_dataset(args)
     store = ShardStore(stage_dir(root, stage), stage)
-    shard_inputs = {s.index: {**inputs, **(frame_inputs(s.frames) if frame_inputs else {})}
-                    for s in plan_shards(frames, args.shard_size)}
+    shard_inputs = {
+        s.index: {**inputs, **(frame_inputs(s.frames) if frame_inputs else {})}
+        for s in plan_shards(frames, args.shard_size)
+    }
     recorded = dict(inputs)
     if frame_inputs is not None:
         recorded[FRAME_FILES] = inputs_digest({k: v for t in shard_inputs.values() for k, v in t.items()})
@@ -129,9 +148,17 @@ def run_frame_stage(stage: str, args: StageArgs, config: dict, frames: list[int]
         for p in store.dir.glob("shard-*.json") if store.dir.exists() else []:
             p.unlink()
     t0 = time.perf_counter()
-    specs, done = run_sharded(store, frames, args.shard_size, cfg, compute, info,
-                              workers=args.num_workers, label=f"[{stage}] rank {info.rank}/{info.world}",
-                              shard_inputs=shard_inputs)
+    specs, done = run_sharded(
+        store,
+        frames,
+        args.shard_size,
+        cfg,
+        compute,
+        info,
+        workers=args.num_workers,
+        label=f"[{stage}] rank {info.rank}/{info.world}",
+        shard_inputs=shard_inputs,
+    )
     barrier(info)
     dt = time.perf_counter() - t0
     args.timings[stage] = args.timings.get(stage, 0.0) + dt
@@ -144,7 +171,9 @@ def run_frame_stage(stage: str, args: StageArgs, config: dict, frames: list[int]
         record_stage(root, stage, config, files, dt, capture=args.capture, inputs=recorded)
         print(f"[{stage}] {len(frames)} frames in {len(specs)} shards, {dt:.1f}s -> {store.dir}")
     elif not done:
-        print(f"[{stage}] rank {info.rank}/{info.world}: my shards are written; the manifest is merged once all ranks finish "
-              f"(re-run without --shard to merge)")
+        print(
+            f"[{stage}] rank {info.rank}/{info.world}: my shards are written; the manifest is merged once all ranks finish "
+            f"(re-run without --shard to merge)"
+        )
     barrier(info)
     return done

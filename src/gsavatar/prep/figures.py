@@ -51,7 +51,8 @@ def _pyvista():
     missing = _missing_gl_libs()
     if missing:
         raise RuntimeError(
-            "off-screen rendering needs the system libraries " + ", ".join(missing)
+            "off-screen rendering needs the system libraries "
+            + ", ".join(missing)
             + " (plus a Mesa EGL driver, e.g. libegl-mesa0, for rendering without a GPU)"
         )
     try:
@@ -77,7 +78,9 @@ def _views(vertices: np.ndarray):
     return [((0.0, 0.0, 1.0), (0.0, 1.0, 0.0)), ((0.0, 0.0, -1.0), (0.0, 1.0, 0.0))]
 
 
-def _render(pv, add_layers, vertices: np.ndarray, path: str | Path, window_size: tuple[int, int], zoom: float = 1.6) -> Path:
+def _render(
+    pv, add_layers, vertices: np.ndarray, path: str | Path, window_size: tuple[int, int], zoom: float = 1.6
+) -> Path:
     from gsavatar.utils.io import write_image
 
     path = Path(path)
@@ -189,10 +192,18 @@ def render_influence_figure(
             pl.add_points(g_on_pts, color=RED, point_size=2.5 * g_size, lighting=False)
         if show_anchors:
             if a_off_pts.n_points:
-                pl.add_points(a_off_pts, color=BLUE, point_size=0.6 * a_size, render_points_as_spheres=True, lighting=False)
+                pl.add_points(
+                    a_off_pts, color=BLUE, point_size=0.6 * a_size, render_points_as_spheres=True, lighting=False
+                )
             if a_on_pts.n_points:
-                pl.add_points(a_on_pts, color=ORANGE, point_size=0.6 * a_size, render_points_as_spheres=True, lighting=False)
+                pl.add_points(
+                    a_on_pts, color=ORANGE, point_size=0.6 * a_size, render_points_as_spheres=True, lighting=False
+                )
         if view == 0:
-            pl.add_text(f"{param}: {int(anchor_on.sum())}/{len(anchor_on)} anchors, {int(g_on.sum())}/{len(g_on)} Gaussians", font_size=10, color="black")
+            pl.add_text(
+                f"{param}: {int(anchor_on.sum())}/{len(anchor_on)} anchors, {int(g_on.sum())}/{len(g_on)} Gaussians",
+                font_size=10,
+                color="black",
+            )
 
     return _render(pv, layers, V, path, window_size)

@@ -50,7 +50,9 @@ HAND_GROUPS = ("left_hand", "right_hand")
 
 
 # --- joint / parameter relations -------------------------------------------------
-def joint_activity(skin_indices: np.ndarray, skin_weights: np.ndarray, num_joints: int, min_weight: float = 0.0) -> np.ndarray:
+def joint_activity(
+    skin_indices: np.ndarray, skin_weights: np.ndarray, num_joints: int, min_weight: float = 0.0
+) -> np.ndarray:
     """Joints with a skinning weight ``> min_weight`` per point.  # [N, J] bool"""
     N, K = skin_indices.shape
     act = np.zeros((N, num_joints), bool)
@@ -116,7 +118,9 @@ def knn_anchor_adjacency(positions: np.ndarray, k: int = 6) -> np.ndarray:
     return adj | adj.T
 
 
-def geodesic_anchor_adjacency(vertices: np.ndarray, faces: np.ndarray, face_idx: np.ndarray, bary: np.ndarray) -> np.ndarray:
+def geodesic_anchor_adjacency(
+    vertices: np.ndarray, faces: np.ndarray, face_idx: np.ndarray, bary: np.ndarray
+) -> np.ndarray:
     """Anchors whose geodesic Voronoi regions on the mesh share an edge.  # [A, A] bool
 
     Each anchor is snapped to the corner of its face with the largest barycentric;
@@ -245,8 +249,16 @@ def build_localization(
     elif adjacency not in ("knn", "geodesic"):
         raise ValueError(f"adjacency must be 'knn' or 'geodesic', got {adjacency!r}")
     pose = pose_masks(
-        a.skin_indices, a.skin_weights, rig, a.position, dilate=dilate, hand_uses_wrist=hand_uses_wrist,
-        ancestor_levels=ancestor_levels, k_neighbors=k_neighbors, adjacency=adj, min_weight=min_weight,
+        a.skin_indices,
+        a.skin_weights,
+        rig,
+        a.position,
+        dilate=dilate,
+        hand_uses_wrist=hand_uses_wrist,
+        ancestor_levels=ancestor_levels,
+        k_neighbors=k_neighbors,
+        adjacency=adj,
+        min_weight=min_weight,
     )
     face = face_mask(a.uv, face_uv_mask) if a.uv is not None else np.zeros(len(a), bool)
     settings = {

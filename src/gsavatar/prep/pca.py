@@ -79,7 +79,11 @@ def fit_pose_pca(
     mean = poses.mean(axis=0) if F else np.zeros(P)
     X = poses - mean
     slot_group = rig.slot_groups()
-    blocks = [(gi, np.flatnonzero(slot_group == gi)) for gi in range(len(BODY_GROUPS))] if mode == "local" else [(-1, np.arange(P))]
+    blocks = (
+        [(gi, np.flatnonzero(slot_group == gi)) for gi in range(len(BODY_GROUPS))]
+        if mode == "local"
+        else [(-1, np.arange(P))]
+    )
     cols, sig, grp = [], [], []
     for gi, slots in blocks:
         V, s = _pca_block(X[:, slots], min(n_components, len(slots)))

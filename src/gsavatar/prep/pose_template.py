@@ -21,8 +21,12 @@ def pose_vertices(capture: Capture, frames: list[int], batch: int = 64) -> np.nd
     with torch.no_grad():
         for s in range(0, len(frames), batch):
             f = frames[s : s + batch]
-            T = skinning_transforms(rt, torch.from_numpy(m.pose[f]), torch.from_numpy(m.root_rotation[f]),
-                                    torch.from_numpy(m.root_translation[f]))
+            T = skinning_transforms(
+                rt,
+                torch.from_numpy(m.pose[f]),
+                torch.from_numpy(m.root_rotation[f]),
+                torch.from_numpy(m.root_translation[f]),
+            )
             out.append(lbs(verts, idx, w, T).numpy())
     v = np.concatenate(out, 0).astype(np.float32)
     bad = ~np.isfinite(v).all(axis=(1, 2))

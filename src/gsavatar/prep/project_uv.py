@@ -141,8 +141,9 @@ def erode_mask(mask: np.ndarray | None, shape: tuple[int, int], erode_px: int, t
         import cv2
 
         # bool is stored as 0/1 bytes: erode the uint8 view, read the 0/1 result back as bool (no copies)
-        fg = cv2.erode(fg.view(np.uint8), np.ones((erode_px, erode_px), np.uint8), borderType=cv2.BORDER_CONSTANT,
-                       borderValue=1).view(bool)
+        fg = cv2.erode(
+            fg.view(np.uint8), np.ones((erode_px, erode_px), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=1
+        ).view(bool)
     return fg
 
 
@@ -159,10 +160,14 @@ def _fov_r2_limit(cam: Camera) -> float:
         return np.inf
     W, H = cam.width, cam.height
     t = np.linspace(0, 1, 65)
-    border = np.concatenate([
-        np.stack([t * (W - 1), np.zeros_like(t)], 1), np.stack([t * (W - 1), np.full_like(t, H - 1)], 1),
-        np.stack([np.zeros_like(t), t * (H - 1)], 1), np.stack([np.full_like(t, W - 1), t * (H - 1)], 1),
-    ])
+    border = np.concatenate(
+        [
+            np.stack([t * (W - 1), np.zeros_like(t)], 1),
+            np.stack([t * (W - 1), np.full_like(t, H - 1)], 1),
+            np.stack([np.zeros_like(t), t * (H - 1)], 1),
+            np.stack([np.full_like(t, W - 1), t * (H - 1)], 1),
+        ]
+    )
     xd = (border - cam.K[:2, 2]) @ np.linalg.inv(cam.K[:2, :2]).T
     xn = undistort(xd, d, iters=50)
     converged = np.abs(distort(xn, d) - xd).max(axis=1) < 1e-4
@@ -180,7 +185,9 @@ def _fov_r2_limit(cam: Camera) -> float:
 # --------------------------------------------------------------------------- sampling
 class _ViewCtx(NamedTuple):
     cam: Camera
-    image: np.ndarray  # [H*W, 3] float32 (z-buffer path: [h*w, 4] uint8/float32 of `region`, alpha = the quad foreground)
+    image: (
+        np.ndarray
+    )  # [H*W, 3] float32 (z-buffer path: [h*w, 4] uint8/float32 of `region`, alpha = the quad foreground)
     fg: np.ndarray | None  # [H*W] bool eroded foreground (None on the z-buffer path: in the image's alpha)
     center: np.ndarray  # [3]
     r2max: float
@@ -189,12 +196,18 @@ class _ViewCtx(NamedTuple):
 
 def _camera_key(cam: Camera) -> tuple:
     """What the per-camera caches (distortion radius bound, pinhole grid) depend on."""
-    return (cam.name, tuple(np.asarray(cam.dist, dtype=np.float64).tolist()), cam.width, cam.height,
-            tuple(cam.K.ravel().tolist()))
+    return (
+        cam.name,
+        tuple(np.asarray(cam.dist, dtype=np.float64).tolist()),
+        cam.width,
+        cam.height,
+        tuple(cam.K.ravel().tolist()),
+    )
 
 
-def _sample_view(P: np.ndarray, Nrm: np.ndarray, v: _ViewCtx, scene, cfg: ProjectConfig,
-                 rgb: np.ndarray, ok: np.ndarray) -> None:
+def _sample_view(
+    P: np.ndarray, Nrm: np.ndarray, v: _ViewCtx, scene, cfg: ProjectConfig, rgb: np.ndarray, ok: np.ndarray
+) -> None:
     """Sample one view for a chunk of texel points P [3, n] (world) with unit normals Nrm [3, n];
     writes rgb [n, 3] float32 and ok [n] bool in place (zero/False on entry).
 
@@ -257,7 +270,9 @@ def _sample_view(P: np.ndarray, Nrm: np.ndarray, v: _ViewCtx, scene, cfg: Projec
             return
         cand, i00, fx, fy = cand[vis], i00[vis], fx[vis], fy[vis]
     img = v.image
-    col = (img[i00] * (1 - fx) + img[i00 + dx] * fx) * (1 - fy) + (img[i00 + dy] * (1 - fx) + img[i00 + dy + dx] * fx) * fy
+    col = (img[i00] * (1 - fx) + img[i00 + dx] * fx) * (1 - fy) + (
+        img[i00 + dy] * (1 - fx) + img[i00 + dy + dx] * fx
+    ) * fy
     finite = np.isfinite(col[:, 0] + col[:, 1] + col[:, 2])
     if not finite.all():
         cand, col = cand[finite], col[finite]
@@ -307,7 +322,9 @@ def _fuse_views(rgbs: Sequence[np.ndarray], oks: Sequence[np.ndarray], fusion: s
     return colour.astype(np.float32), count, seen
 
 
-def fuse_samples(rgb: np.ndarray, ok: np.ndarray, fusion: str = "median_band", band: tuple[float, float] = (0.8, 1.1)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def fuse_samples(
+    rgb: np.ndarray, ok: np.ndarray, fusion: str = "median_band", band: tuple[float, float] = (0.8, 1.1)
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fuse per-texel view samples.
 
     rgb [N, C, 3], ok [N, C] bool -> (colour [N, 3] float32 (0 where nothing kept),
@@ -342,7 +359,9 @@ class _ZFrame:
     num_views: int  # views consumed (including ones without foreground)
     index: list[int]  # position of each kept view among all views
     cams: list[np.ndarray]  # [CAM_FIELDS] float64 packed cameras
-    imgs: list[np.ndarray]  # [h*w, 4] float32 or uint8 of the view's region, alpha = quad foreground (zbuffer.region_rgba)
+    imgs: list[
+        np.ndarray
+    ]  # [h*w, 4] float32 or uint8 of the view's region, alpha = quad foreground (zbuffer.region_rgba)
     tri_ids: list[np.ndarray]  # [Hg, Wg] int32 front triangle (-1 empty)
     planes: list[np.ndarray]  # [F, 4] float64 camera-space triangle planes
 
@@ -355,13 +374,20 @@ class UVProjector:
     resolution, True = face) applied when ``config.mask_face``.
     """
 
-    def __init__(self, faces: np.ndarray, texel_map: TexelMap, config: ProjectConfig | None = None,
-                 face_uv_mask: np.ndarray | None = None) -> None:
+    def __init__(
+        self,
+        faces: np.ndarray,
+        texel_map: TexelMap,
+        config: ProjectConfig | None = None,
+        face_uv_mask: np.ndarray | None = None,
+    ) -> None:
         if config is None:
             config = ProjectConfig(tex_size=int(texel_map.size))
         elif config.tex_size != texel_map.size:
-            raise ValueError(f"texel map is {texel_map.size}^2 but config.tex_size is {config.tex_size}; "
-                             "build it with prepare_texel_map(template, config)")
+            raise ValueError(
+                f"texel map is {texel_map.size}^2 but config.tex_size is {config.tex_size}; "
+                "build it with prepare_texel_map(template, config)"
+            )
         self.config = config
         self.faces = np.asarray(faces, dtype=np.int64)
         self.size = int(texel_map.size)
@@ -408,9 +434,13 @@ class UVProjector:
             raise ValueError(f"frame {frame}: posed vertices must be [V, 3], got {v.shape}")
         bad = ~np.all(np.isfinite(v), axis=1)
         if bad.any():
-            raise ValueError(f"frame {frame}: {int(bad.sum())} posed vertices are NaN/Inf (first: vertex {int(np.argmax(bad))})")
+            raise ValueError(
+                f"frame {frame}: {int(bad.sum())} posed vertices are NaN/Inf (first: vertex {int(np.argmax(bad))})"
+            )
         if len(self.faces) and self.faces.max() >= len(v):
-            raise ValueError(f"frame {frame}: faces reference vertex {self.faces.max()} but only {len(v)} posed vertices given")
+            raise ValueError(
+                f"frame {frame}: faces reference vertex {self.faces.max()} but only {len(v)} posed vertices given"
+            )
         return np.ascontiguousarray(v)
 
     def _surface_soa(self, vertices: np.ndarray, frame) -> tuple[np.ndarray, np.ndarray]:
@@ -430,7 +460,9 @@ class UVProjector:
         Nrm *= np.where(good, 1.0 / np.where(good, length, 1.0), 0.0)
         return P, Nrm
 
-    def _view_ctx(self, view: View, frame, keep_uint8: bool = False, quad: bool = False, slot: int = -1) -> _ViewCtx | None:
+    def _view_ctx(
+        self, view: View, frame, keep_uint8: bool = False, quad: bool = False, slot: int = -1
+    ) -> _ViewCtx | None:
         """Checked view: image [H*W, 3] (float32 in [0, 1]; uint8 kept as is when ``keep_uint8``), eroded
         foreground [H*W] bool, camera centre and distortion radius bound. None when the mask has no foreground.
         ``quad`` (the z-buffer path): instead, the RGBA buffer of the mask's region with the
@@ -444,9 +476,13 @@ class UVProjector:
         if image.ndim == 2:
             image = np.repeat(image[..., None], 3, axis=2)
         if image.shape[:2] != (cam.height, cam.width) or image.shape[2] < 3:
-            raise ValueError(f"frame {frame}: image of camera {cam.name!r} is {image.shape}, calibration says {cam.height}x{cam.width}x3")
+            raise ValueError(
+                f"frame {frame}: image of camera {cam.name!r} is {image.shape}, calibration says {cam.height}x{cam.width}x3"
+            )
         if mask is not None and np.asarray(mask).shape[:2] != (cam.height, cam.width):
-            raise ValueError(f"frame {frame}: mask of camera {cam.name!r} is {np.asarray(mask).shape}, calibration says {cam.height}x{cam.width}")
+            raise ValueError(
+                f"frame {frame}: mask of camera {cam.name!r} is {np.asarray(mask).shape}, calibration says {cam.height}x{cam.width}"
+            )
         m = mask if mask is None or np.asarray(mask).ndim == 2 else np.asarray(mask)[..., 0]
         key = _camera_key(cam)
         if key not in self._r2:
@@ -454,8 +490,13 @@ class UVProjector:
         if quad:  # the z-buffer kernels read the foreground from the alpha channel of the mask's region of the image
             from gsavatar.prep.zbuffer import region_rgba
 
-            got = region_rgba(np.asarray(image[..., :3], dtype=np.uint8 if image.dtype == np.uint8 else np.float32), m,
-                              self.config.erode_px, self.config.mask_threshold, self._rgba.get(slot) if slot >= 0 else None)
+            got = region_rgba(
+                np.asarray(image[..., :3], dtype=np.uint8 if image.dtype == np.uint8 else np.float32),
+                m,
+                self.config.erode_px,
+                self.config.mask_threshold,
+                self._rgba.get(slot) if slot >= 0 else None,
+            )
             if got is None:
                 return None
             img, region = got
@@ -466,7 +507,9 @@ class UVProjector:
         fg = erode_mask(m, (cam.height, cam.width), self.config.erode_px, self.config.mask_threshold)
         if not fg.any():
             return None
-        img = np.ascontiguousarray(image[..., :3], dtype=np.uint8 if image.dtype == np.uint8 else np.float32).reshape(-1, 3)
+        img = np.ascontiguousarray(image[..., :3], dtype=np.uint8 if image.dtype == np.uint8 else np.float32).reshape(
+            -1, 3
+        )
         return _ViewCtx(cam, img, fg.ravel(), np.asarray(cam.center, dtype=np.float64), self._r2[key])
 
     def _zbuffer_views(self, vertices: np.ndarray, views: Iterable[View], frame, occlusion: bool = True) -> _ZFrame:
@@ -498,8 +541,11 @@ class UVProjector:
             grid = self._grids[key]
             crop = (0, 0)
             if occlusion and len(faces):
-                vc = zb.transform(v, np.ascontiguousarray(cam.R, dtype=np.float64),
-                                  np.ascontiguousarray(cam.T, dtype=np.float64).reshape(3))
+                vc = zb.transform(
+                    v,
+                    np.ascontiguousarray(cam.R, dtype=np.float64),
+                    np.ascontiguousarray(cam.T, dtype=np.float64).reshape(3),
+                )
                 x0, y0, x1, y1 = _raster_crop(vc, grid)
                 crop = (x0, y0)
                 shape = (max(y1 - y0 + 1, 1), max(x1 - x0 + 1, 1))
@@ -507,8 +553,20 @@ class UVProjector:
                 planes = np.empty((len(faces), 4))
                 if x1 >= x0 and y1 >= y0:
                     invz = np.zeros(shape, np.float32)
-                    zb.rasterize(vc, faces, grid.fx, grid.skew, grid.cx - x0, grid.fy, grid.cy - y0, ZNEAR,
-                                 self._closed, tri_id, invz, planes)
+                    zb.rasterize(
+                        vc,
+                        faces,
+                        grid.fx,
+                        grid.skew,
+                        grid.cx - x0,
+                        grid.fy,
+                        grid.cy - y0,
+                        ZNEAR,
+                        self._closed,
+                        tri_id,
+                        invz,
+                        planes,
+                    )
             else:
                 tri_id, planes = np.full((1, 1), -1, np.int32), np.zeros((1, 4))
             out.index.append(c)
@@ -534,12 +592,21 @@ class UVProjector:
             rgb = np.zeros((N, 3), dtype=np.float32)
             ok = np.zeros(N, dtype=bool)
             for s in range(0, N, step):
-                _sample_view(P[:, s:s + step], Nrm[:, s:s + step], ctx, scene, self.config, rgb[s:s + step], ok[s:s + step])
+                _sample_view(
+                    P[:, s : s + step],
+                    Nrm[:, s : s + step],
+                    ctx,
+                    scene,
+                    self.config,
+                    rgb[s : s + step],
+                    ok[s : s + step],
+                )
             out.append((rgb, ok) if ok.any() else None)  # a camera that sees nothing contributes nothing
         return out
 
-    def samples(self, vertices: np.ndarray, views: Iterable[View], frame: int | str | None = None,
-                occlusion: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    def samples(
+        self, vertices: np.ndarray, views: Iterable[View], frame: int | str | None = None, occlusion: bool = True
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Per-view samples of every projected texel (diagnostics/tests).
 
         -> rgb [N, C, 3] float32 (0 where unseen), ok [N, C] bool; N = :attr:`num_texels`
@@ -555,9 +622,22 @@ class UVProjector:
             for k, c in enumerate(zf.index):
                 r = np.zeros((N, 3), np.float32)
                 o = np.zeros(N, bool)
-                zb.sample_view(zf.P, zf.Nrm, self._z_tri, self.faces, zf.cams[k], zf.imgs[k], zf.imgs[k].dtype == np.uint8,
-                               occlusion, zf.tri_ids[k], zf.planes[k], float(self.config.occlusion_eps),
-                               float(self.config.min_cos), r, o)
+                zb.sample_view(
+                    zf.P,
+                    zf.Nrm,
+                    self._z_tri,
+                    self.faces,
+                    zf.cams[k],
+                    zf.imgs[k],
+                    zf.imgs[k].dtype == np.uint8,
+                    occlusion,
+                    zf.tri_ids[k],
+                    zf.planes[k],
+                    float(self.config.occlusion_eps),
+                    float(self.config.min_cos),
+                    r,
+                    o,
+                )
                 rgb[self._zorder, c] = np.where(o[:, None], r, np.float32(0))
                 ok[self._zorder, c] = o
             return rgb, ok
@@ -574,8 +654,10 @@ class UVProjector:
 
         scene = o3d.t.geometry.RaycastingScene()
         if len(self.faces):
-            scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
-                                o3d.core.Tensor(np.ascontiguousarray(self.faces, dtype=np.uint32)))
+            scene.add_triangles(
+                o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
+                o3d.core.Tensor(np.ascontiguousarray(self.faces, dtype=np.uint32)),
+            )
         return scene
 
     def project(self, vertices: np.ndarray, views: Iterable[View], frame: int | str | None = None) -> TexelFusion:
@@ -594,15 +676,16 @@ class UVProjector:
         step = cfg.chunk
         if got:
             for s in range(0, self.num_texels, step):
-                col, cnt, sn = _fuse_views([c[s:s + step] for c, _ in got], [o[s:s + step] for _, o in got], cfg.fusion, cfg.band)
-                t = self.texels[s:s + step]
+                col, cnt, sn = _fuse_views(
+                    [c[s : s + step] for c, _ in got], [o[s : s + step] for _, o in got], cfg.fusion, cfg.band
+                )
+                t = self.texels[s : s + step]
                 texture[t] = col
                 count[t] = np.minimum(cnt, 255)
                 seen[t] = np.minimum(sn, 255)
         valid = count > 0
         texture[~valid] = 0.0
         return TexelFusion(texture.reshape(S, S, 3), count.reshape(S, S), seen.reshape(S, S), valid.reshape(S, S))
-
 
     def _project_zbuffer(self, vertices: np.ndarray, views: Iterable[View], frame) -> TexelFusion:
         """:meth:`project` by the compiled kernels (``visibility="zbuffer"``)."""
@@ -619,12 +702,33 @@ class UVProjector:
         seen = np.zeros(S * S, dtype=np.uint8)
         if zf.index and N:
             u8 = all(im.dtype == np.uint8 for im in zf.imgs)
-            imgs = zf.imgs if u8 else [im if im.dtype == np.float32 else im.astype(np.float32) / np.float32(255)
-                                       for im in zf.imgs]
-            zb.project_frame(zf.P, zf.Nrm, self._z_tri, self.faces, np.stack(zf.cams), List(imgs), u8, True,
-                             List(zf.tri_ids), List(zf.planes), float(cfg.occlusion_eps), float(cfg.min_cos),
-                             cfg.fusion == "median_band", float(cfg.band[0]), float(cfg.band[1]), BLOCK, self._z_texels,
-                             texture, count, seen)
+            imgs = (
+                zf.imgs
+                if u8
+                else [im if im.dtype == np.float32 else im.astype(np.float32) / np.float32(255) for im in zf.imgs]
+            )
+            zb.project_frame(
+                zf.P,
+                zf.Nrm,
+                self._z_tri,
+                self.faces,
+                np.stack(zf.cams),
+                List(imgs),
+                u8,
+                True,
+                List(zf.tri_ids),
+                List(zf.planes),
+                float(cfg.occlusion_eps),
+                float(cfg.min_cos),
+                cfg.fusion == "median_band",
+                float(cfg.band[0]),
+                float(cfg.band[1]),
+                BLOCK,
+                self._z_texels,
+                texture,
+                count,
+                seen,
+            )
         valid = count > 0
         return TexelFusion(texture.reshape(S, S, 3), count.reshape(S, S), seen.reshape(S, S), valid.reshape(S, S))
 
@@ -662,12 +766,14 @@ def _raster_crop(vc: np.ndarray, grid) -> tuple[int, int, int, int]:
 
 def _morton(y: np.ndarray, x: np.ndarray) -> np.ndarray:
     """Z-order (Morton) code of non-negative integer coordinates < 2^16. y, x [N] -> [N] int64."""
+
     def spread(v: np.ndarray) -> np.ndarray:
         v = np.asarray(v, np.int64) & 0xFFFF
         v = (v | (v << 8)) & 0x00FF00FF
         v = (v | (v << 4)) & 0x0F0F0F0F
         v = (v | (v << 2)) & 0x33333333
         return (v | (v << 1)) & 0x55555555
+
     return (spread(y) << 1) | spread(x)
 
 
@@ -677,22 +783,31 @@ BLOCK = 1024
 """Texels per block of the fused z-buffer kernel (its samples, C x BLOCK x 13 bytes, stay in cache)."""
 
 
-def prepare_texel_map(template: Template, config: ProjectConfig | None = None,
-                      cache_dir: str | Path | None = None) -> tuple[Template, TexelMap]:
+def prepare_texel_map(
+    template: Template, config: ProjectConfig | None = None, cache_dir: str | Path | None = None
+) -> tuple[Template, TexelMap]:
     """The template with UVs (xatlas unwrap if it has none, cached in ``cache_dir``) and its
     :class:`TexelMap` at ``config.tex_size`` with ``config.gutter_px`` seam dilation. Build once per run."""
     from gsavatar.prep.uv_atlas import build_texel_map, ensure_uvs
 
     config = config or ProjectConfig(tex_size=512)
     if not config.tex_size:
-        raise ValueError("config.tex_size is 0 (derived): resolve it first, e.g. with gsavatar.prep.stages.resolve_tex_size")
+        raise ValueError(
+            "config.tex_size is 0 (derived): resolve it first, e.g. with gsavatar.prep.stages.resolve_tex_size"
+        )
     template = ensure_uvs(template, cache_dir)
     return template, build_texel_map(template, size=config.tex_size, gutter=config.gutter_px)
 
 
-def project_uv(vertices: np.ndarray, faces: np.ndarray, texel_map: TexelMap, views: Iterable[View],
-               config: ProjectConfig | None = None, face_uv_mask: np.ndarray | None = None,
-               frame: int | str | None = None) -> TexelFusion:
+def project_uv(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    texel_map: TexelMap,
+    views: Iterable[View],
+    config: ProjectConfig | None = None,
+    face_uv_mask: np.ndarray | None = None,
+    frame: int | str | None = None,
+) -> TexelFusion:
     """One-shot :meth:`UVProjector.project` (build a :class:`UVProjector` once to reuse it over frames)."""
     return UVProjector(faces, texel_map, config, face_uv_mask).project(vertices, views, frame)
 
@@ -714,8 +829,9 @@ def cameras_seeing(vertices: np.ndarray, cameras: Sequence[Camera]) -> list[str]
     return out
 
 
-def iter_frame_views(capture: Capture, frame: int, cams: Sequence[str] | None = None,
-                     uint8: bool = False) -> Iterable[View]:
+def iter_frame_views(
+    capture: Capture, frame: int, cams: Sequence[str] | None = None, uint8: bool = False
+) -> Iterable[View]:
     """Yield (camera, image [H,W,3] float32, mask [H,W] float32) of one frame, one view at a time.
 
     ``uint8``: 8-bit image files come as their uint8 values (:func:`~gsavatar.utils.io.read_image`'s
@@ -731,9 +847,17 @@ def iter_frame_views(capture: Capture, frame: int, cams: Sequence[str] | None = 
         img = read_image(ip, keep_uint8=uint8)
         mask = read_mask(mp)
         if img.shape[:2] != (cam.height, cam.width):
-            raise SchemaError(ip, "size", f"is {img.shape[1]}x{img.shape[0]}, calibration.json says {cam.width}x{cam.height} for {name!r}")
+            raise SchemaError(
+                ip,
+                "size",
+                f"is {img.shape[1]}x{img.shape[0]}, calibration.json says {cam.width}x{cam.height} for {name!r}",
+            )
         if mask.shape[:2] != (cam.height, cam.width):
-            raise SchemaError(mp, "size", f"is {mask.shape[1]}x{mask.shape[0]}, calibration.json says {cam.width}x{cam.height} for {name!r}")
+            raise SchemaError(
+                mp,
+                "size",
+                f"is {mask.shape[1]}x{mask.shape[0]}, calibration.json says {cam.width}x{cam.height} for {name!r}",
+            )
         warn_mask_coverage(mp, mask)
         yield cam, img, mask
 
@@ -788,19 +912,26 @@ def check_mask_coverage(capture: Capture, cams: Sequence[str], max_frames: int =
             if not MIN_FOREGROUND <= c <= MAX_FOREGROUND:
                 bad.append(f"{p.relative_to(capture.root)} ({100 * c:.2f}%)")
     if n and (n - len(bad)) / n < min_ok:
-        raise SchemaError(capture.root / "masks", "", f"{len(bad)} of {n} sampled masks are empty or all foreground, "
-                          f"e.g. {', '.join(bad[:3])}: the textures would be empty or background; masks must be white "
-                          "(or 1, or the alpha) on the body and 0 elsewhere (docs/data_schema.md, Masks)")
+        raise SchemaError(
+            capture.root / "masks",
+            "",
+            f"{len(bad)} of {n} sampled masks are empty or all foreground, "
+            f"e.g. {', '.join(bad[:3])}: the textures would be empty or background; masks must be white "
+            "(or 1, or the alpha) on the body and 0 elsewhere (docs/data_schema.md, Masks)",
+        )
 
 
-def load_frame_views(capture: Capture, frame: int, cams: Sequence[str] | None = None, uint8: bool = False) -> list[View]:
+def load_frame_views(
+    capture: Capture, frame: int, cams: Sequence[str] | None = None, uint8: bool = False
+) -> list[View]:
     """All views of one frame: list of (camera, image [H,W,3] float32 [0,1], mask [H,W] float32 [0,1])
     (``uint8``: as :func:`iter_frame_views`)."""
     return list(iter_frame_views(capture, frame, cams, uint8))
 
 
-def prefetched_frame_views(capture: Capture, frames: Sequence[int], cams: Sequence[str] | None = None,
-                           uint8: bool = False, ahead: bool = True) -> Iterator[tuple[int, list[View]]]:
+def prefetched_frame_views(
+    capture: Capture, frames: Sequence[int], cams: Sequence[str] | None = None, uint8: bool = False, ahead: bool = True
+) -> Iterator[tuple[int, list[View]]]:
     """(frame, :func:`load_frame_views`) for each of ``frames``, reading the next frame in a background thread
     while the caller works on the current one (``ahead``; OpenCV's decoders and the z-buffer kernels release
     the GIL, so on two cores reading overlaps projection). At most two frames' views are in memory. A reading

@@ -43,8 +43,9 @@ def count_image(count: np.ndarray, max_views: int) -> np.ndarray:
     return rgb
 
 
-def build_report(dataset: Path, out: Path, frames: list[int] | None = None, compare_mean: int = 0,
-                 previews: int = 3) -> dict:
+def build_report(
+    dataset: Path, out: Path, frames: list[int] | None = None, compare_mean: int = 0, previews: int = 3
+) -> dict:
     dataset = Path(dataset)
     meta = read_dataset_json(dataset)
     cap_root = Path(meta["capture"])
@@ -110,14 +111,18 @@ def _compare_mean(cap, dataset: Path, cfg: dict, frames: list[int], surface: np.
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m gsavatar.prep.report", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        prog="python -m gsavatar.prep.report", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("dataset", type=Path)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--compare-mean", type=int, default=0, help="frames to re-project with plain-mean fusion")
     ap.add_argument("--previews", type=int, default=3)
-    ap.add_argument("--force", action="store_true",
-                    help="write into a non-empty --out that is not a report folder (refused otherwise)")
+    ap.add_argument(
+        "--force",
+        action="store_true",
+        help="write into a non-empty --out that is not a report folder (refused otherwise)",
+    )
     a = ap.parse_args(argv)
 
     def run() -> None:

@@ -52,7 +52,9 @@ def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]]), axis=1)
 
 
-def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def sample_surface(
+    vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """Area-uniform surface samples -> (face_idx [n] int64, bary [n, 3] float64)."""
     area = face_areas(vertices, faces)
     total = area.sum()
@@ -79,7 +81,12 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def transfer_skin_weights(
-    skin_indices: np.ndarray, skin_weights: np.ndarray, faces: np.ndarray, face_idx: np.ndarray, bary: np.ndarray, chunk: int = 65536
+    skin_indices: np.ndarray,
+    skin_weights: np.ndarray,
+    faces: np.ndarray,
+    face_idx: np.ndarray,
+    bary: np.ndarray,
+    chunk: int = 65536,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Barycentric transfer of vertex skin weights with same-joint merging and re-top-K.
 
@@ -112,7 +119,9 @@ def transfer_skin_weights(
     return out_i, out_w
 
 
-def surface_points(template: Template, face_idx: np.ndarray, bary: np.ndarray, vnormals: np.ndarray | None = None) -> PointSet:
+def surface_points(
+    template: Template, face_idx: np.ndarray, bary: np.ndarray, vnormals: np.ndarray | None = None
+) -> PointSet:
     """All per-point attributes of surface samples ``(face_idx [N], bary [N, 3])``."""
     faces = template.faces
     face_idx = np.asarray(face_idx, np.int64)
@@ -136,7 +145,9 @@ def surface_points(template: Template, face_idx: np.ndarray, bary: np.ndarray, v
     return PointSet(pos.astype(np.float32), nrm.astype(np.float32), face_idx, bary.astype(np.float32), uv, si, sw)
 
 
-def barycentric_interpolate(values: np.ndarray, faces: np.ndarray, face_idx: np.ndarray, bary: np.ndarray) -> np.ndarray:
+def barycentric_interpolate(
+    values: np.ndarray, faces: np.ndarray, face_idx: np.ndarray, bary: np.ndarray
+) -> np.ndarray:
     """Per-vertex values at surface points, as ``geometry.lbs.barycentric_interpolate``
     (numpy only, so prep does not import torch). [V, C], [F, 3], [N], [N, 3] -> [N, C]"""
     f = faces[face_idx]
@@ -180,7 +191,9 @@ def _fps_numpy(points: np.ndarray, k: int, start: int = 0) -> np.ndarray:
     return idx
 
 
-def idw_weights(points: np.ndarray, targets: np.ndarray, k: int = 3, tree: cKDTree | None = None, eps: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
+def idw_weights(
+    points: np.ndarray, targets: np.ndarray, k: int = 3, tree: cKDTree | None = None, eps: float = 1e-12
+) -> tuple[np.ndarray, np.ndarray]:
     """Supp. eq. 1: k nearest targets and weights ``(1/d_j) / sum_k (1/d_k)``.
 
     -> (indices [N, k] int64 sorted by distance, weights [N, k] float32 rows sum to 1).

@@ -69,8 +69,13 @@ def config_hash(config: dict) -> str:
     return hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def _run_one(fn: Callable[[list[int]], dict[str, np.ndarray]], store: ShardStore, spec: ShardSpec, chash: str,
-             inputs: dict[str, str] | None = None) -> int:
+def _run_one(
+    fn: Callable[[list[int]], dict[str, np.ndarray]],
+    store: ShardStore,
+    spec: ShardSpec,
+    chash: str,
+    inputs: dict[str, str] | None = None,
+) -> int:
     store.write(spec, fn(spec.frames), chash, inputs)
     return len(spec.frames)
 

@@ -18,8 +18,15 @@ from gsavatar.data_schema import Capture, SchemaError, load_capture
 from gsavatar.data_schema.dataset import ShardReader, read_dataset_json, stage_dir, stage_path
 from gsavatar.data_schema.hierarchy import Hierarchy
 from gsavatar.prep.common import StageArgs, run_frame_stage, run_single_file_stage, stage_config
-from gsavatar.prep.configs import (FitPcaConfig, LocalizeConfig, PoseTemplateConfig, ProjectConfig, ProjectUvConfig,
-                                   SamplePointsConfig, UvAtlasConfig)
+from gsavatar.prep.configs import (
+    FitPcaConfig,
+    LocalizeConfig,
+    PoseTemplateConfig,
+    ProjectConfig,
+    ProjectUvConfig,
+    SamplePointsConfig,
+    UvAtlasConfig,
+)
 from gsavatar.prep.inputs import frame_inputs
 from gsavatar.utils.io import atomic_save_npz, read_npz
 from gsavatar.utils.paths import output_path
@@ -34,8 +41,14 @@ def _pose_shard(capture_dir: str, frames: list[int]) -> dict[str, np.ndarray]:
 
 def pose_template(args: StageArgs, cap: Capture, cfg: PoseTemplateConfig, inputs: dict[str, str]) -> bool:
     frames = list(range(cap.num_frames))
-    return run_frame_stage("pose-template", args, {"num_vertices": int(len(cap.template.vertices))}, frames,
-                           functools.partial(_pose_shard, str(args.capture)), inputs)
+    return run_frame_stage(
+        "pose-template",
+        args,
+        {"num_vertices": int(len(cap.template.vertices))},
+        frames,
+        functools.partial(_pose_shard, str(args.capture)),
+        inputs,
+    )
 
 
 # --------------------------------------------------------------------------- uv-atlas
@@ -76,10 +89,20 @@ def uv_atlas(args: StageArgs, cap: Capture, cfg: UvAtlasConfig, inputs: dict[str
         path = root / "uv_atlas" / "atlas.npz"
         # face_uv_mask belongs to the template's own UV layout; after an xatlas unwrap there is none.
         face_mask = t.face_uv_mask if t.face_uv_mask is not None else np.zeros((1, 1), bool)
-        atomic_save_npz(path, face=tm.face, bary=tm.bary, interior=tm.interior, size=np.int64(tm.size),
-                        uvs=t.uvs, face_uvs=t.face_uvs, face_uv_mask=face_mask)
-        print(f"[uv-atlas] {tex_size}x{tex_size}: {tm.valid.mean():.1%} of texels on the surface "
-              f"({'template UVs' if cap.template.uvs is not None else 'xatlas unwrap'})")
+        atomic_save_npz(
+            path,
+            face=tm.face,
+            bary=tm.bary,
+            interior=tm.interior,
+            size=np.int64(tm.size),
+            uvs=t.uvs,
+            face_uvs=t.face_uvs,
+            face_uv_mask=face_mask,
+        )
+        print(
+            f"[uv-atlas] {tex_size}x{tex_size}: {tm.valid.mean():.1%} of texels on the surface "
+            f"({'template UVs' if cap.template.uvs is not None else 'xatlas unwrap'})"
+        )
         return [path]
 
     return run_single_file_stage("uv-atlas", args, atlas_config(tex_size, cfg.gutter_px), produce, inputs)
@@ -89,7 +112,9 @@ def load_atlas(root: Path):
     """The texel map and UVs written by ``uv-atlas``."""
     from gsavatar.prep.uv_atlas import TexelMap
 
-    z = read_npz(stage_path(Path(root), "uv-atlas", "atlas.npz"), keys=("face", "bary", "size", "interior", "uvs", "face_uvs"))
+    z = read_npz(
+        stage_path(Path(root), "uv-atlas", "atlas.npz"), keys=("face", "bary", "size", "interior", "uvs", "face_uvs")
+    )
     return TexelMap(z["face"], z["bary"], int(z["size"]), z["interior"]), z["uvs"], z["face_uvs"]
 
 
@@ -100,7 +125,9 @@ def load_atlas_face_mask(root: Path) -> np.ndarray | None:
 
 
 # --------------------------------------------------------------------------- project-uv
-def _project_shard(capture_dir: str, dataset: str, cfg_json: dict, cams: list[str], frames: list[int]) -> dict[str, np.ndarray]:
+def _project_shard(
+    capture_dir: str, dataset: str, cfg_json: dict, cams: list[str], frames: list[int]
+) -> dict[str, np.ndarray]:
     from gsavatar.prep.project_uv import UVProjector, prefetched_frame_views
 
     cap = load_capture(capture_dir)
@@ -133,9 +160,12 @@ def check_cameras_see_body(cap: Capture, cams: list[str], max_frames: int = 8) -
     verts = pose_vertices(cap, frames).reshape(-1, 3)  # [n*V, 3] world, metres
     seeing = cameras_seeing(verts, [cap.cameras[c] for c in cams])
     if not seeing:
-        raise SchemaError(cap.root / "calibration.json", "R/T",
-                          f"the body is behind or outside every projected camera ({', '.join(cams)}) in frames {frames}: "
-                          "check that R, T map world to camera (x_cam = R x_world + T, +z forward)")
+        raise SchemaError(
+            cap.root / "calibration.json",
+            "R/T",
+            f"the body is behind or outside every projected camera ({', '.join(cams)}) in frames {frames}: "
+            "check that R, T map world to camera (x_cam = R x_world + T, +z forward)",
+        )
     blind = [c for c in cams if c not in seeing]
     if blind:
         print(f"[project-uv] warning: cameras {blind} see no part of the body in frames {frames}")
@@ -167,13 +197,21 @@ def project_uv(args: StageArgs, cap: Capture, cfg: ProjectUvConfig, inputs: dict
         # Textures of an older gsavatar were ray cast. Recomputing them with the z-buffer would change the
         # dataset's content id and strand every run trained on it, so the dataset keeps its method (also for
         # frames still to do); --force recomputes everything with the configured one.
-        print("[project-uv] dataset projected before the z-buffer existed: keeping its ray-cast visibility "
-              "(--force recomputes with the z-buffer)")
+        print(
+            "[project-uv] dataset projected before the z-buffer existed: keeping its ray-cast visibility "
+            "(--force recomputes with the z-buffer)"
+        )
         cfg_json = {**cfg_json, "visibility": "rays"}
         record = {k: v for k, v in cfg_json.items() if k != "visibility"}
-    return run_frame_stage("project-uv", args, {**record, "cameras": cams}, list(range(cap.num_frames)),
-                           functools.partial(_project_shard, str(args.capture), str(args.out), cfg_json, cams),
-                           inputs, functools.partial(frame_inputs, cap, cams=cams))
+    return run_frame_stage(
+        "project-uv",
+        args,
+        {**record, "cameras": cams},
+        list(range(cap.num_frames)),
+        functools.partial(_project_shard, str(args.capture), str(args.out), cfg_json, cams),
+        inputs,
+        functools.partial(frame_inputs, cap, cams=cams),
+    )
 
 
 # --------------------------------------------------------------------------- fit-pca
@@ -181,8 +219,12 @@ def fit_pca(args: StageArgs, cap: Capture, cfg: FitPcaConfig, inputs: dict[str, 
     from gsavatar.prep.pca import fit_pose_pca
 
     root = Path(args.out)
-    config = {"n_components": cfg.n_components, "global_components": cfg.global_components,
-              "clamp_sigma": cfg.clamp_sigma, "train_frames": len(cap.splits["train"].frames)}
+    config = {
+        "n_components": cfg.n_components,
+        "global_components": cfg.global_components,
+        "clamp_sigma": cfg.clamp_sigma,
+        "train_frames": len(cap.splits["train"].frames),
+    }
 
     def produce() -> list[Path]:
         poses = cap.motion.pose[cap.splits["train"].frames]
@@ -245,24 +287,46 @@ def localize(args: StageArgs, cap: Capture, cfg: LocalizeConfig, inputs: dict[st
 
     def produce() -> list[Path]:
         h = Hierarchy.load(stage_path(root, "sample-points", "hierarchy.npz"))
-        masks = build_localization(h, cap.rig, cap.template.face_uv_mask, ancestor_levels=cfg.ancestor_levels,
-                                   k_neighbors=cfg.k_neighbors, template=cap.template)
+        masks = build_localization(
+            h,
+            cap.rig,
+            cap.template.face_uv_mask,
+            ancestor_levels=cfg.ancestor_levels,
+            k_neighbors=cfg.k_neighbors,
+            template=cap.template,
+        )
         path = root / "localize" / "masks.npz"
         masks.save(path)
         files = [path]
         active = masks.pose.mean()
-        print(f"[localize] {masks.pose.shape[0]} anchors x {masks.pose.shape[1]} pose slots, {active:.1%} active; "
-              f"{int(masks.face.sum())} face anchors")
+        print(
+            f"[localize] {masks.pose.shape[0]} anchors x {masks.pose.shape[1]} pose slots, {active:.1%} active; "
+            f"{int(masks.face.sum())} face anchors"
+        )
         if cfg.figures:
             from gsavatar.prep.figures import render_hierarchy_figure, render_influence_figure
 
             names = [p.name for p in cap.rig.params]
             param = cfg.figure_param if cfg.figure_param in names else names[0]
             files.append(Path(render_hierarchy_figure(cap.template, h, root / "localize" / "hierarchy.png")))
-            files.append(Path(render_influence_figure(cap.template, h, masks, cap.rig,
-                                                      output_path(root, "localize", f"influence_{param}.png"), param=param)))
+            files.append(
+                Path(
+                    render_influence_figure(
+                        cap.template,
+                        h,
+                        masks,
+                        cap.rig,
+                        output_path(root, "localize", f"influence_{param}.png"),
+                        param=param,
+                    )
+                )
+            )
         return files
 
-    config = {"ancestor_levels": cfg.ancestor_levels, "k_neighbors": cfg.k_neighbors, "figure_param": cfg.figure_param,
-              "figures": cfg.figures}
+    config = {
+        "ancestor_levels": cfg.ancestor_levels,
+        "k_neighbors": cfg.k_neighbors,
+        "figure_param": cfg.figure_param,
+        "figures": cfg.figures,
+    }
     return run_single_file_stage("localize", args, config, produce, inputs)

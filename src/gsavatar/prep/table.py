@@ -23,8 +23,14 @@ from gsavatar.data_schema import Capture
 from gsavatar.data_schema.dataset import read_dataset_json, stage_complete
 from gsavatar.prep import stages
 from gsavatar.prep.common import StageArgs, open_capture
-from gsavatar.prep.configs import (FitPcaConfig, LocalizeConfig, PoseTemplateConfig, ProjectUvConfig,
-                                   SamplePointsConfig, UvAtlasConfig)
+from gsavatar.prep.configs import (
+    FitPcaConfig,
+    LocalizeConfig,
+    PoseTemplateConfig,
+    ProjectUvConfig,
+    SamplePointsConfig,
+    UvAtlasConfig,
+)
 from gsavatar.prep.inputs import metadata_inputs, upstream_inputs
 
 SHARDS = ("manifest.json", "shard-*.npz")
@@ -64,19 +70,45 @@ class Stage:
 
 
 STAGES: tuple[Stage, ...] = (  # in dependency order: a stage comes after every stage it reads
-    Stage("pose-template", PoseTemplateConfig, ("capture.json", "motion.npz", "template/"), (), SHARDS,
-          stages.pose_template),
+    Stage(
+        "pose-template",
+        PoseTemplateConfig,
+        ("capture.json", "motion.npz", "template/"),
+        (),
+        SHARDS,
+        stages.pose_template,
+    ),
     Stage("uv-atlas", UvAtlasConfig, ("template/",), (), ("atlas.npz",), stages.uv_atlas),
-    Stage("project-uv", ProjectUvConfig, ("capture.json", "calibration.json", "splits.json", "template/"),
-          (Upstream("pose-template", lambda cfg: PoseTemplateConfig()),
-           Upstream("uv-atlas", stages.atlas_for_projection)),
-          SHARDS, stages.project_uv, stages.check_project_uv),
-    Stage("fit-pca", FitPcaConfig, ("motion.npz", "splits.json", "template/rig.json"), (),
-          ("local.npz", "global.npz"), stages.fit_pca),
+    Stage(
+        "project-uv",
+        ProjectUvConfig,
+        ("capture.json", "calibration.json", "splits.json", "template/"),
+        (
+            Upstream("pose-template", lambda cfg: PoseTemplateConfig()),
+            Upstream("uv-atlas", stages.atlas_for_projection),
+        ),
+        SHARDS,
+        stages.project_uv,
+        stages.check_project_uv,
+    ),
+    Stage(
+        "fit-pca",
+        FitPcaConfig,
+        ("motion.npz", "splits.json", "template/rig.json"),
+        (),
+        ("local.npz", "global.npz"),
+        stages.fit_pca,
+    ),
     # the automatic counts come from calibration.json but are resolved into the recorded config
     Stage("sample-points", SamplePointsConfig, ("template/",), (), ("hierarchy.npz",), stages.sample_points),
-    Stage("localize", LocalizeConfig, ("template/",), (Upstream("sample-points"),),
-          ("masks.npz", "hierarchy.png", "influence_*.png"), stages.localize),
+    Stage(
+        "localize",
+        LocalizeConfig,
+        ("template/",),
+        (Upstream("sample-points"),),
+        ("masks.npz", "hierarchy.png", "influence_*.png"),
+        stages.localize,
+    ),
 )
 BY_NAME: dict[str, Stage] = {s.name: s for s in STAGES}
 
@@ -93,8 +125,10 @@ def config_of(options: Any, cls: type) -> Any:
 
 def stage_inputs(stage: Stage, dataset: Path, capture_root: Path) -> dict[str, str]:
     """Fingerprint of what ``stage`` reads: its capture files and the identity of its upstream stages."""
-    return {**metadata_inputs(capture_root, stage.inputs),
-            **upstream_inputs(Path(dataset), tuple(u.stage for u in stage.upstream))}
+    return {
+        **metadata_inputs(capture_root, stage.inputs),
+        **upstream_inputs(Path(dataset), tuple(u.stage for u in stage.upstream)),
+    }
 
 
 def recorded_or_default(dataset: Path, name: str) -> Any:
@@ -120,7 +154,8 @@ def plan(targets: dict[str, Any], dataset: Path, capture_root: Path) -> list[tup
             if up.config is not None:
                 configs[up.stage] = up.config(configs[stage.name])
             elif up.stage not in configs and not stage_complete(
-                    dataset, up.stage, inputs=stage_inputs(BY_NAME[up.stage], dataset, capture_root)):
+                dataset, up.stage, inputs=stage_inputs(BY_NAME[up.stage], dataset, capture_root)
+            ):
                 configs[up.stage] = recorded_or_default(dataset, up.stage)
     return [(s, configs[s.name]) for s in STAGES if s.name in configs]
 

@@ -57,7 +57,9 @@ def _mesh_hash(vertices: np.ndarray, faces: np.ndarray) -> str:
     return h.hexdigest()[:24]
 
 
-def unwrap_xatlas(vertices: np.ndarray, faces: np.ndarray, resolution: int = 1024, padding: int = 2) -> tuple[np.ndarray, np.ndarray]:
+def unwrap_xatlas(
+    vertices: np.ndarray, faces: np.ndarray, resolution: int = 1024, padding: int = 2
+) -> tuple[np.ndarray, np.ndarray]:
     """Unwrap a triangle mesh with xatlas into one atlas.
 
     vertices [V,3], faces [F,3] -> (uvs [T,2] float32 in [0,1], OBJ convention v up;
@@ -75,7 +77,9 @@ def unwrap_xatlas(vertices: np.ndarray, faces: np.ndarray, resolution: int = 102
     atlas.generate(pack_options=pack)
     vmapping, indices, uvs = atlas[0]
     indices = np.asarray(indices, dtype=np.int64).reshape(-1, 3)
-    if indices.shape[0] != faces.shape[0] or not np.array_equal(np.asarray(vmapping, dtype=np.int64)[indices], np.asarray(faces, dtype=np.int64)):
+    if indices.shape[0] != faces.shape[0] or not np.array_equal(
+        np.asarray(vmapping, dtype=np.int64)[indices], np.asarray(faces, dtype=np.int64)
+    ):
         raise RuntimeError("xatlas changed the face order/count; cannot map its UVs back onto the template")
     uvs = np.asarray(uvs, dtype=np.float32).copy()
     # xatlas' atlas image has row 0 at uv.y = 0; flip to OBJ (v up) so our top-row-first
@@ -215,7 +219,9 @@ def _reduce_best(tex, score, face, n_texels):
     return tex[idx], idx
 
 
-def build_texel_map(vertices_or_template, corner_uvs: np.ndarray | None = None, size: int = 512, gutter: float = 1.0) -> TexelMap:
+def build_texel_map(
+    vertices_or_template, corner_uvs: np.ndarray | None = None, size: int = 512, gutter: float = 1.0
+) -> TexelMap:
     """Which triangle covers every texel centre, and where (barycentrics).
 
     ``vertices_or_template``: a :class:`Template` (its ``corner_uvs`` are used when

@@ -92,10 +92,14 @@ def pinhole_grid(cam: Camera, r2max: float) -> Grid:
     if not np.any(d):
         return Grid(fx, skew, cx, fy, cy, W, H)
     t = np.linspace(0, 1, 257)
-    border = np.concatenate([
-        np.stack([t * (W - 1), np.zeros_like(t)], 1), np.stack([t * (W - 1), np.full_like(t, H - 1)], 1),
-        np.stack([np.zeros_like(t), t * (H - 1)], 1), np.stack([np.full_like(t, W - 1), t * (H - 1)], 1),
-    ])
+    border = np.concatenate(
+        [
+            np.stack([t * (W - 1), np.zeros_like(t)], 1),
+            np.stack([t * (W - 1), np.full_like(t, H - 1)], 1),
+            np.stack([np.zeros_like(t), t * (H - 1)], 1),
+            np.stack([np.full_like(t, W - 1), t * (H - 1)], 1),
+        ]
+    )
     xd = (border - K[:2, 2]) @ np.linalg.inv(K[:2, :2]).T
     xn = undistort(xd, d, iters=50)
     good = (np.abs(distort(xn, d) - xd).max(axis=1) < 1e-4) & np.all(np.isfinite(xn), axis=1)
@@ -113,8 +117,15 @@ def pinhole_grid(cam: Camera, r2max: float) -> Grid:
     v0, v1 = max(v.min() - 2, cy - MAX_GRID_SCALE * H / 2), min(v.max() + 2, cy + MAX_GRID_SCALE * H / 2)
     if not (u1 > u0 and v1 > v0):
         return Grid(fx, skew, cx, fy, cy, W, H)
-    return Grid(fx, skew, -math.floor(u0), fy, -math.floor(v0),
-                int(math.ceil(u1) - math.floor(u0)) + 1, int(math.ceil(v1) - math.floor(v0)) + 1)
+    return Grid(
+        fx,
+        skew,
+        -math.floor(u0),
+        fy,
+        -math.floor(v0),
+        int(math.ceil(u1) - math.floor(u0)) + 1,
+        int(math.ceil(v1) - math.floor(v0)) + 1,
+    )
 
 
 _U8_TO_FLOAT = np.arange(256, dtype=np.float32) / np.float32(255)
@@ -124,7 +135,9 @@ _U8_TO_FLOAT = np.arange(256, dtype=np.float32) / np.float32(255)
 # --------------------------------------------------------------------------- masks
 
 
-def quad_foreground(mask: np.ndarray | None, shape: tuple[int, int], erode_px: int, threshold: float = 0.5) -> np.ndarray:
+def quad_foreground(
+    mask: np.ndarray | None, shape: tuple[int, int], erode_px: int, threshold: float = 0.5
+) -> np.ndarray:
     """Pixels whose four bilinear taps (x..x+1, y..y+1) all lie in the eroded foreground. -> [H, W] bool
 
     ``E = erode(mask > threshold, erode_px x erode_px)`` (as ``project_uv.erode_mask``, out-of-image
@@ -141,8 +154,13 @@ def _quad_erode(fg: np.ndarray, erode_px: int) -> np.ndarray:
     import cv2
 
     e = erode_px if erode_px > 1 else 1
-    return cv2.erode(np.ascontiguousarray(fg).view(np.uint8), np.ones((e + 1, e + 1), np.uint8), anchor=(e // 2, e // 2),
-                     borderType=cv2.BORDER_CONSTANT, borderValue=1).view(bool)
+    return cv2.erode(
+        np.ascontiguousarray(fg).view(np.uint8),
+        np.ones((e + 1, e + 1), np.uint8),
+        anchor=(e // 2, e // 2),
+        borderType=cv2.BORDER_CONSTANT,
+        borderValue=1,
+    ).view(bool)
 
 
 def foreground_box(fg: np.ndarray | None, shape: tuple[int, int], erode_px: int) -> tuple[int, int, int, int] | None:
@@ -194,8 +212,9 @@ def image_with_foreground(image: np.ndarray, fg: np.ndarray, out: np.ndarray | N
     return out
 
 
-def region_rgba(image: np.ndarray, mask: np.ndarray | None, erode_px: int, threshold: float = 0.5,
-                out: np.ndarray | None = None) -> tuple[np.ndarray, tuple[int, int, int, int]] | None:
+def region_rgba(
+    image: np.ndarray, mask: np.ndarray | None, erode_px: int, threshold: float = 0.5, out: np.ndarray | None = None
+) -> tuple[np.ndarray, tuple[int, int, int, int]] | None:
     """:func:`image_with_foreground` of the :func:`foreground_box` region only. image [H, W, 3], mask [H, W]
     -> (rgba [w*h, 4], (x0, y0, w, h)), or None when the mask has no foreground. The kernels treat every
     pixel outside the region as background (its flag is 0 in the whole-image computation)."""
@@ -208,10 +227,10 @@ def region_rgba(image: np.ndarray, mask: np.ndarray | None, erode_px: int, thres
     if fg is None:
         quad = np.ones((h, w), bool)
     else:
-        quad = _quad_erode(fg[y0:y0 + h, x0:x0 + w], erode_px)
+        quad = _quad_erode(fg[y0 : y0 + h, x0 : x0 + w], erode_px)
         # the region's own border counts as foreground in the erosion; where it is the image's border that is
         # the whole-image rule, and elsewhere the margin keeps it more than e pixels from any foreground
-    return image_with_foreground(image[y0:y0 + h, x0:x0 + w], quad, out), box
+    return image_with_foreground(image[y0 : y0 + h, x0 : x0 + w], quad, out), box
 
 
 # --------------------------------------------------------------------------- rasterizer
@@ -303,8 +322,25 @@ def rasterize(vc, faces, gfx, gskew, gcx, gfy, gcy, znear, cull_back, tri_id, in
                 px[m], py[m], pz[m] = ix + t * (jx - ix), iy + t * (jy - iy), znear
                 m += 1
         for k in range(1, m - 1):
-            _raster_tri(px[0], py[0], pz[0], px[k], py[k], pz[k], px[k + 1], py[k + 1], pz[k + 1], f,
-                        gfx, gskew, gcx, gfy, gcy, tri_id, invz)
+            _raster_tri(
+                px[0],
+                py[0],
+                pz[0],
+                px[k],
+                py[k],
+                pz[k],
+                px[k + 1],
+                py[k + 1],
+                pz[k + 1],
+                f,
+                gfx,
+                gskew,
+                gcx,
+                gfy,
+                gcy,
+                tri_id,
+                invz,
+            )
 
 
 @numba.njit(cache=False, error_model="numpy", nogil=True)
@@ -325,8 +361,13 @@ CAM_FIELDS = 43
 """Length of a packed camera row (:func:`pack_camera`)."""
 
 
-def pack_camera(cam: Camera, r2max: float, grid: Grid, crop: tuple[int, int] = (0, 0),
-                region: tuple[int, int, int, int] | None = None) -> np.ndarray:
+def pack_camera(
+    cam: Camera,
+    r2max: float,
+    grid: Grid,
+    crop: tuple[int, int] = (0, 0),
+    region: tuple[int, int, int, int] | None = None,
+) -> np.ndarray:
     """One view's parameters for the kernels. -> [CAM_FIELDS] float64:
     R (9, row-major), T (3), centre (3), fx, skew, cx, fy, cy, dist (5), use_dist, r2max, W, H,
     grid (fx, skew, cx, fy, cy, width, height), crop origin (x, y) of the triangle-id buffer in the
@@ -336,10 +377,19 @@ def pack_camera(cam: Camera, r2max: float, grid: Grid, crop: tuple[int, int] = (
     d = np.asarray(cam.dist, np.float64).reshape(5)
     same = (not np.any(d)) and grid.params.tolist() == [K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]]
     region = (0, 0, cam.width, cam.height) if region is None else region
-    return np.concatenate([np.asarray(cam.R, np.float64).ravel(), np.asarray(cam.T, np.float64).reshape(3),
-                           np.asarray(cam.center, np.float64).reshape(3), [K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]],
-                           d, [float(np.any(d)), r2max, cam.width, cam.height], grid.params,
-                           [grid.width, grid.height, crop[0], crop[1], float(same)], np.asarray(region, np.float64)])
+    return np.concatenate(
+        [
+            np.asarray(cam.R, np.float64).ravel(),
+            np.asarray(cam.T, np.float64).reshape(3),
+            np.asarray(cam.center, np.float64).reshape(3),
+            [K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]],
+            d,
+            [float(np.any(d)), r2max, cam.width, cam.height],
+            grid.params,
+            [grid.width, grid.height, crop[0], crop[1], float(same)],
+            np.asarray(region, np.float64),
+        ]
+    )
 
 
 @numba.njit(cache=False, error_model="numpy", nogil=True, inline="always")
@@ -430,8 +480,9 @@ def _project_block(P, Nrm, s0, n, cp, min_cos, Hc, Wc, I00, FX, FY, RAY, TI):
 
 
 @numba.njit(cache=False, error_model="numpy", nogil=True, inline="always")
-def _sample_block(s0, n, own_tri, faces, cp, img, u8, use_vis, tid, planes, eps, I00, FX, FY, RAY, TI,
-                  out, row0, stride, k):
+def _sample_block(
+    s0, n, own_tri, faces, cp, img, u8, use_vis, tid, planes, eps, I00, FX, FY, RAY, TI, out, row0, stride, k
+):
     """Pass 2 of a block in one view: for each texel j that pass 1 kept, the mask flag (the RGBA buffer's
     alpha), the depth test against the triangle-id buffer (module docstring) and the bilinear colour,
     written to out[row0 + j * stride + k[j], 0:3] (float32); k[j] += 1 when seen with a finite colour.
@@ -509,8 +560,9 @@ def sample_view(P, Nrm, own_tri, faces, cp, img, u8, use_vis, tri_id, planes, ep
         RAY = np.empty((n, 4))
         k = np.zeros(n, np.int64)
         _project_block(P, Nrm, s0, n, cp, min_cos, Hc, Wc, I00, FX, FY, RAY, TI)
-        _sample_block(s0, n, own_tri, faces, cp, img, u8, use_vis, tri_id, planes, eps, I00, FX, FY, RAY, TI,
-                      rgb, s0, 1, k)
+        _sample_block(
+            s0, n, own_tri, faces, cp, img, u8, use_vis, tri_id, planes, eps, I00, FX, FY, RAY, TI, rgb, s0, 1, k
+        )
         for j in range(n):
             ok[s0 + j] = k[j] > 0
 
@@ -532,8 +584,11 @@ def _fuse_one(s, row0, k, median_band, lo, hi, L, idx, keep, col, count, seen, i
     n_keep = 0
     if median_band:
         for m in range(k):
-            L[m] = 0.2126 * np.float64(s[row0 + m, 0]) + 0.7152 * np.float64(s[row0 + m, 1]) \
+            L[m] = (
+                0.2126 * np.float64(s[row0 + m, 0])
+                + 0.7152 * np.float64(s[row0 + m, 1])
                 + 0.0722 * np.float64(s[row0 + m, 2])
+            )
         # stable order by luminance (ties keep view order) from each sample's rank, counted without branches:
         # the same order as an insertion sort, whose data-dependent branches cost ~7% of project_frame
         for m in range(k):
@@ -661,8 +716,28 @@ def _faces_away(bnd, cp, min_cos):
 
 
 @numba.njit(cache=False, error_model="numpy", nogil=True, parallel=True)
-def project_frame(P, Nrm, own_tri, faces, cams, imgs, u8, use_vis, tri_ids, planes, eps, min_cos,
-                  median_band, lo, hi, block, out_index, col, count, seen):
+def project_frame(
+    P,
+    Nrm,
+    own_tri,
+    faces,
+    cams,
+    imgs,
+    u8,
+    use_vis,
+    tri_ids,
+    planes,
+    eps,
+    min_cos,
+    median_band,
+    lo,
+    hi,
+    block,
+    out_index,
+    col,
+    count,
+    seen,
+):
     """Sample every view and fuse, in blocks of ``block`` texels (a block's samples stay in cache).
 
     P, Nrm [3, N], own_tri [N], faces [F, 3] as :func:`sample_view`; cams [C, CAM_FIELDS]; imgs, tri_ids,
@@ -704,8 +779,28 @@ def project_frame(P, Nrm, own_tri, faces, cams, imgs, u8, use_vis, tri_ids, plan
                 tid = tri_ids[c]
                 Hc, Wc = tid.shape
                 _project_block(P, Nrm, s0, n, cp, min_cos, Hc, Wc, I00, FX, FY, RAY, TI)
-                _sample_block(s0, n, own_tri, faces, cp, imgs[c], u8, use_vis, tid, planes[c], eps, I00, FX, FY,
-                              RAY, TI, smp, 0, C, k)
+                _sample_block(
+                    s0,
+                    n,
+                    own_tri,
+                    faces,
+                    cp,
+                    imgs[c],
+                    u8,
+                    use_vis,
+                    tid,
+                    planes[c],
+                    eps,
+                    I00,
+                    FX,
+                    FY,
+                    RAY,
+                    TI,
+                    smp,
+                    0,
+                    C,
+                    k,
+                )
             for j in range(n):
                 _fuse_one(smp, j * C, k[j], median_band, lo, hi, L, idx, keep, col, count, seen, out_index[s0 + j])
 

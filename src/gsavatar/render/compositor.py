@@ -214,8 +214,15 @@ def _float_below(value: float, dtype: torch.dtype) -> float:
 
 
 def _evaluate_batch(
-    params_q: Tensor, bins: TileBins, tiles: Tensor, k_pad: int, basis: Tensor,
-    width: int, height: int, tile_size: int, junk: int,
+    params_q: Tensor,
+    bins: TileBins,
+    tiles: Tensor,
+    k_pad: int,
+    basis: Tensor,
+    width: int,
+    height: int,
+    tile_size: int,
+    junk: int,
 ) -> _Batch:
     """Alphas, transmittance and weights of every (pixel, list entry) of a tile batch.
 
@@ -361,8 +368,10 @@ class _Composite(torch.autograd.Function):
         g_q = torch.zeros(n_q + 1, 6 + n_ext - 1, dtype=colors_q.dtype, device=colors_q.device)
         cache, ctx.cache = ctx.cache, None  # cached buffers are consumed (mutated) below
         for i, (tiles, k_pad) in enumerate(batches):
-            batch = cache[i] if cache is not None and cache[i] is not None else _evaluate_batch(
-                params_q, bins, tiles, k_pad, basis, width, height, tile_size, n_pix
+            batch = (
+                cache[i]
+                if cache is not None and cache[i] is not None
+                else _evaluate_batch(params_q, bins, tiles, k_pad, basis, width, height, tile_size, n_pix)
             )
             dest = torch.where(batch.in_list.reshape(-1), batch.pos, torch.full_like(batch.pos, n_q))
             g_q.index_copy_(0, dest, _batch_vjp(batch, colors_q, g_ext, basis))
@@ -439,8 +448,12 @@ def composite(
     with torch.no_grad():
         order = torch.argsort(depths.detach(), stable=True)
         bins = bin_to_tiles(
-            means2d.detach().index_select(0, order), radii.index_select(0, order),
-            camera_ids.index_select(0, order), width, height, tile_size,
+            means2d.detach().index_select(0, order),
+            radii.index_select(0, order),
+            camera_ids.index_select(0, order),
+            width,
+            height,
+            tile_size,
         )
         # Lists refer to the caller's instance indices; no need to permute params.
         bins = bins._replace(instance_lists=order.index_select(0, bins.instance_lists))
@@ -448,8 +461,16 @@ def composite(
     if method == "numba":
         counts: list = []
         out_color, out_alpha = compositor_numba.CompositeNumba.apply(
-            params.index_select(0, bins.instance_lists), colors.index_select(0, bins.instance_lists),
-            bins.tile_ids, bins.list_offsets, bins.list_counts, width, height, n_cameras, tile_size, counts,
+            params.index_select(0, bins.instance_lists),
+            colors.index_select(0, bins.instance_lists),
+            bins.tile_ids,
+            bins.list_offsets,
+            bins.list_counts,
+            width,
+            height,
+            n_cameras,
+            tile_size,
+            counts,
         )
         if stats_out is not None:
             pairs, walked, used = counts[0]
@@ -461,8 +482,16 @@ def composite(
     if not (torch.is_grad_enabled() and (params.requires_grad or colors.requires_grad)):
         cache_candidates = 0  # no backward will come: do not hold buffers
     out_color, out_alpha = _Composite.apply(
-        params, colors.contiguous(), bins, width, height, n_cameras, tile_size,
-        max_candidates, cache_candidates, stats_out,
+        params,
+        colors.contiguous(),
+        bins,
+        width,
+        height,
+        n_cameras,
+        tile_size,
+        max_candidates,
+        cache_candidates,
+        stats_out,
     )
     return (
         out_color.reshape(n_cameras, height, width, n_ch),

@@ -56,8 +56,9 @@ if numba is not None:
         return params[q, 5] * math.exp(-sigma)
 
     @numba.njit(parallel=True, cache=False, fastmath=False)
-    def _forward_kernel(params, skip_sigma, colors, tile_ids, offsets, counts, width, height, tile_size, out, stop,
-                        counters):
+    def _forward_kernel(
+        params, skip_sigma, colors, tile_ids, offsets, counts, width, height, tile_size, out, stop, counters
+    ):
         # params [Q, 6] (x, y, a, b, c, opacity), colors [Q, D] in tile-list order;
         # out [n_pix, D + 1] (features, alpha), stop [n_pix] one past the last entry walked,
         # counters [n_tiles, 2]: (pixel, entry) pairs walked and pairs that contributed (stats).
@@ -102,8 +103,9 @@ if numba is not None:
             counters[t, 1] = used
 
     @numba.njit(parallel=True, cache=False, fastmath=False)
-    def _backward_kernel(params, skip_sigma, colors, tile_ids, offsets, width, height, tile_size, stop, out, g_pix,
-                         g_q):
+    def _backward_kernel(
+        params, skip_sigma, colors, tile_ids, offsets, width, height, tile_size, stop, out, g_pix, g_q
+    ):
         # out [n_pix, D + 1] the forward's float64 (features, alpha); g_pix [n_pix, D + 1] dL/d(features, alpha);
         # g_q [Q, 6 + D] per list entry (zero-initialised).
         D = colors.shape[1]

@@ -118,9 +118,9 @@ def project_gaussians(
     ty = z_safe * torch.minimum(torch.maximum(y * rz, -lim_y_neg), lim_y_pos)
 
     zeros = torch.zeros_like(z_safe)
-    jac = torch.stack(
-        [fx * rz, zeros, -fx * tx * rz * rz, zeros, fy * rz, -fy * ty * rz * rz], dim=-1
-    ).reshape(z.shape + (2, 3))  # [C, N, 2, 3] d(pixel)/d(cam point)
+    jac = torch.stack([fx * rz, zeros, -fx * tx * rz * rz, zeros, fy * rz, -fy * ty * rz * rz], dim=-1).reshape(
+        z.shape + (2, 3)
+    )  # [C, N, 2, 3] d(pixel)/d(cam point)
 
     # cov2d = T T^T with T = J R_cw M; keeping the 2x3 factor lets us take the
     # determinant by Cauchy-Binet (a sum of squares), which stays >= 0 and
@@ -212,4 +212,3 @@ def camera_centers(viewmats: Tensor) -> Tensor:
     t_cw = viewmats[:, :3, 3]
     # world_from_cam translation = -R^T t for a rigid transform.
     return -(rot_cw.transpose(-1, -2) @ t_cw[..., None]).squeeze(-1)
-

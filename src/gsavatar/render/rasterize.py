@@ -41,9 +41,7 @@ class RenderOutput(NamedTuple):
 def _check_shape(name: str, t: Tensor, expected: tuple[int | str, ...], pretty: str) -> None:
     if not isinstance(t, Tensor):
         raise ValueError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
-    ok = t.dim() == len(expected) and all(
-        isinstance(e, str) or t.shape[i] == e for i, e in enumerate(expected)
-    )
+    ok = t.dim() == len(expected) and all(isinstance(e, str) or t.shape[i] == e for i, e in enumerate(expected))
     if not ok:
         raise ValueError(f"{name} must be {pretty}, got {tuple(t.shape)}")
 
@@ -80,8 +78,15 @@ def _validate(
         raise ValueError(f"width and height must be positive, got {width}x{height}")
     if not means.is_floating_point():
         raise ValueError(f"means must be a floating point tensor, got {means.dtype}")
-    tensors = {"means": means, "quats": quats, "scales": scales, "opacities": opacities,
-               "colors": colors, "viewmats": viewmats, "Ks": Ks}
+    tensors = {
+        "means": means,
+        "quats": quats,
+        "scales": scales,
+        "opacities": opacities,
+        "colors": colors,
+        "viewmats": viewmats,
+        "Ks": Ks,
+    }
     if backgrounds is not None:
         tensors["backgrounds"] = backgrounds
     for name, t in tensors.items():
@@ -139,21 +144,30 @@ def rasterize(
     """
     if backend not in ("auto", "torch", "gsplat"):
         raise ValueError(f"backend must be 'auto', 'torch' or 'gsplat', got {backend!r}")
-    n, c, d = _validate(
-        means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds, sh_degree
-    )
+    n, c, d = _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds, sh_degree)
     width, height = int(width), int(height)
     if backend == "auto":
         backend = "gsplat" if means.device.type == "cuda" else "torch"
     if backend == "gsplat":
         return _rasterize_gsplat(
-            means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-            backgrounds, sh_degree, render_depth, near_plane, far_plane, eps2d,
+            means,
+            quats,
+            scales,
+            opacities,
+            colors,
+            viewmats,
+            Ks,
+            width,
+            height,
+            backgrounds,
+            sh_degree,
+            render_depth,
+            near_plane,
+            far_plane,
+            eps2d,
         )
 
-    proj = project_gaussians(
-        means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d
-    )
+    proj = project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d)
     cam_ids, gs_ids = proj.valid.nonzero(as_tuple=True)  # [V], [V]
     # Flat index_select (not advanced indexing): its backward is a fast index_add.
     flat = cam_ids * n + gs_ids
@@ -205,8 +219,21 @@ def rasterize(
 
 
 def _rasterize_gsplat(
-    means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-    backgrounds, sh_degree, render_depth, near_plane, far_plane, eps2d,
+    means,
+    quats,
+    scales,
+    opacities,
+    colors,
+    viewmats,
+    Ks,
+    width,
+    height,
+    backgrounds,
+    sh_degree,
+    render_depth,
+    near_plane,
+    far_plane,
+    eps2d,
 ) -> RenderOutput:
     """Delegate to gsplat's fused CUDA rasteriser (same conventions, its 16 px tiles).
 
@@ -218,8 +245,19 @@ def _rasterize_gsplat(
     from gsplat import rasterization
 
     img, alphas, meta = rasterization(
-        means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree,
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        viewmats,
+        Ks,
+        width,
+        height,
+        near_plane=near_plane,
+        far_plane=far_plane,
+        eps2d=eps2d,
+        sh_degree=sh_degree,
         backgrounds=backgrounds,
         render_mode="RGB+ED" if render_depth else "RGB",
     )

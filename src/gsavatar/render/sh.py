@@ -95,10 +95,7 @@ def eval_sh_colors(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
     """
     n_bases = num_sh_bases(degree)
     if coeffs.shape[-2] < n_bases:
-        raise ValueError(
-            f"coeffs must have at least {n_bases} bases for degree {degree}, "
-            f"got {tuple(coeffs.shape)}"
-        )
+        raise ValueError(f"coeffs must have at least {n_bases} bases for degree {degree}, got {tuple(coeffs.shape)}")
     if degree > 0:
         norm_sq = (dirs * dirs).sum(-1, keepdim=True)
         dirs = dirs * torch.rsqrt(norm_sq.clamp_min(_DIR_NORM_EPS))

@@ -8,6 +8,17 @@ from gsavatar.runs.latents import mean_train_latent
 from gsavatar.runs.load import LoadedRun, load_run, pick_device, predictor_from_checkpoint, run_predictor_path
 from gsavatar.runs.views import orbit_cameras, render_views
 
-__all__ = ["LoadedRun", "LossWeights", "TrainConfig", "load_run", "mean_train_latent", "model_config",
-           "orbit_cameras", "pick_device", "predictor_from_checkpoint", "render_views", "resolve",
-           "run_predictor_path"]
+__all__ = [
+    "LoadedRun",
+    "LossWeights",
+    "TrainConfig",
+    "load_run",
+    "mean_train_latent",
+    "model_config",
+    "orbit_cameras",
+    "pick_device",
+    "predictor_from_checkpoint",
+    "render_views",
+    "resolve",
+    "run_predictor_path",
+]

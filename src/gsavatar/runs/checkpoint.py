@@ -24,8 +24,15 @@ CHECKPOINT_FORMAT = "gsavatar-avatar-checkpoint"
 CHECKPOINT_VERSION = 1
 
 
-def save_checkpoint(path: str | Path, *, step: int, config: dict, modules: dict[str, torch.nn.Module],
-                    optimizer: torch.optim.Optimizer | None, extra: dict | None = None) -> None:
+def save_checkpoint(
+    path: str | Path,
+    *,
+    step: int,
+    config: dict,
+    modules: dict[str, torch.nn.Module],
+    optimizer: torch.optim.Optimizer | None,
+    extra: dict | None = None,
+) -> None:
     state = {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
@@ -49,8 +56,12 @@ def resume_hint(ckpt: Path, step: int) -> str:
     return "no checkpoint yet: re-running the same command starts from step 0"
 
 
-def load_checkpoint(path: str | Path, config: dict | None = None, strict_config_keys: tuple[str, ...] = (),
-                    defaults: dict[str, dict] | None = None) -> dict:
+def load_checkpoint(
+    path: str | Path,
+    config: dict | None = None,
+    strict_config_keys: tuple[str, ...] = (),
+    defaults: dict[str, dict] | None = None,
+) -> dict:
     """Load safely (``weights_only=True``) and check format and, for ``strict_config_keys``, the config.
 
     ``defaults``: per strict key, the values of config fields added since a checkpoint was written (a field
@@ -64,7 +75,9 @@ def load_checkpoint(path: str | Path, config: dict | None = None, strict_config_
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - torch raises many types for corrupt files
-        raise SchemaError(path, "", f"cannot load checkpoint (truncated or not a gsavatar checkpoint): {type(e).__name__}") from None
+        raise SchemaError(
+            path, "", f"cannot load checkpoint (truncated or not a gsavatar checkpoint): {type(e).__name__}"
+        ) from None
     # isinstance first: a tensor stored under a key would make ``!=`` a tensor ("Boolean value ... ambiguous")
     if not isinstance(state, dict) or not isinstance(state.get("format"), str) or state["format"] != CHECKPOINT_FORMAT:
         raise SchemaError(path, "format", "not a gsavatar avatar checkpoint")
@@ -87,7 +100,11 @@ def load_checkpoint(path: str | Path, config: dict | None = None, strict_config_
                 a = {**defaults[key], **a} if isinstance(a, dict) else a
                 b = {**defaults[key], **b} if isinstance(b, dict) else b
             if a != b:
-                raise SchemaError(path, f"config.{key}", f"checkpoint has {a!r}, this run has {b!r}: it belongs to another configuration")
+                raise SchemaError(
+                    path,
+                    f"config.{key}",
+                    f"checkpoint has {a!r}, this run has {b!r}: it belongs to another configuration",
+                )
     return state
 
 
@@ -98,14 +115,21 @@ def check_same_dataset(ckpt: Path, saved: dict, dataset: Path, dataset_id: str) 
     Raises SchemaError naming ``ckpt`` and the field."""
     saved_id = saved.get("dataset_id")
     if saved_id is not None and saved_id != dataset_id:
-        raise SchemaError(ckpt, "config.dataset_id", f"checkpoint was trained on another dataset (content "
-                          f"{str(saved_id)[:12]}..., {dataset} now holds {dataset_id[:12]}...): the dataset was "
-                          f"replaced or re-prepared; train a new run (another --out)")
+        raise SchemaError(
+            ckpt,
+            "config.dataset_id",
+            f"checkpoint was trained on another dataset (content "
+            f"{str(saved_id)[:12]}..., {dataset} now holds {dataset_id[:12]}...): the dataset was "
+            f"replaced or re-prepared; train a new run (another --out)",
+        )
     if saved_id is None:
         old = Path(saved["train"]["dataset"])
         if old.resolve() != Path(dataset).resolve():
-            raise SchemaError(ckpt, "config.train.dataset", f"checkpoint has {str(old)!r}, this run has "
-                              f"{str(dataset)!r}: it belongs to another configuration")
+            raise SchemaError(
+                ckpt,
+                "config.train.dataset",
+                f"checkpoint has {str(old)!r}, this run has {str(dataset)!r}: it belongs to another configuration",
+            )
 
 
 def _get(d: dict, dotted: str):

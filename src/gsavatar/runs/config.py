@@ -126,10 +126,24 @@ class Schedule:
 
 
 PRESET_SCHEDULES: dict[str, Schedule] = {
-    "tiny": Schedule(steps=150, batch_size=2, image_scale=1.0, correctives_step=30, checkpoint_every=50,
-                     basis_lr_scale=30.0, vae_noise_step=-1),
-    "small": Schedule(steps=1200, batch_size=2, image_scale=1.0, correctives_step=200, checkpoint_every=200,
-                      basis_lr_scale=30.0, vae_noise_step=-1),
+    "tiny": Schedule(
+        steps=150,
+        batch_size=2,
+        image_scale=1.0,
+        correctives_step=30,
+        checkpoint_every=50,
+        basis_lr_scale=30.0,
+        vae_noise_step=-1,
+    ),
+    "small": Schedule(
+        steps=1200,
+        batch_size=2,
+        image_scale=1.0,
+        correctives_step=200,
+        checkpoint_every=200,
+        basis_lr_scale=30.0,
+        vae_noise_step=-1,
+    ),
     "paper": Schedule(steps=100_000, batch_size=64, image_scale=1.0, correctives_step=500, checkpoint_every=2000),
 }
 """Schedules per preset; the paper trains 100k steps at batch 64 on 8 GPUs."""
@@ -181,8 +195,16 @@ def model_config_from_json(d: dict, file: str | Path) -> ModelConfig:
 def check_train_config(cfg: TrainConfig) -> None:
     """Refuse counts and scales the trainer cannot use (0 = the preset's value where allowed),
     before anything is loaded or written. Raises ValueError naming the field."""
-    minimum = {"steps": 0, "batch_size": 0, "checkpoint_every": 0, "max_steps_this_run": 0, "num_workers": 0,
-               "log_every": 1, "eval_frames": 1, "correctives_step": -1}
+    minimum = {
+        "steps": 0,
+        "batch_size": 0,
+        "checkpoint_every": 0,
+        "max_steps_this_run": 0,
+        "num_workers": 0,
+        "log_every": 1,
+        "eval_frames": 1,
+        "correctives_step": -1,
+    }
     for name, lo in minimum.items():
         v = getattr(cfg, name)
         if not isinstance(v, int) or v < lo:
@@ -192,7 +214,9 @@ def check_train_config(cfg: TrainConfig) -> None:
     if not (np.isfinite(cfg.basis_lr_scale) and cfg.basis_lr_scale >= 0):
         raise ValueError(f"basis_lr_scale must be > 0 (or 0 = preset), got {cfg.basis_lr_scale!r}")
     if not isinstance(cfg.vae_noise_step, int) or cfg.vae_noise_step < -2:
-        raise ValueError(f"vae_noise_step must be an integer >= -2 (-2 = preset, -1 = never), got {cfg.vae_noise_step!r}")
+        raise ValueError(
+            f"vae_noise_step must be an integer >= -2 (-2 = preset, -1 = never), got {cfg.vae_noise_step!r}"
+        )
     if not (np.isfinite(cfg.cache_max_gb) and cfg.cache_max_gb >= 0):
         raise ValueError(f"cache_max_gb must be >= 0, got {cfg.cache_max_gb!r}")
     if not 0 <= cfg.sh_increase_fraction <= 1:
@@ -236,8 +260,13 @@ def _typed(v, hint, file: str | Path, field: str):
         return v
     if type(None) in args:  # Optional[...]
         return None if v is None else _typed(v, next(a for a in args if a is not type(None)), file, field)
-    ok = {Path: lambda x: isinstance(x, str) and x != "", int: is_int, float: is_number,
-          bool: lambda x: isinstance(x, bool), str: lambda x: isinstance(x, str)}.get(hint)
+    ok = {
+        Path: lambda x: isinstance(x, str) and x != "",
+        int: is_int,
+        float: is_number,
+        bool: lambda x: isinstance(x, bool),
+        str: lambda x: isinstance(x, str),
+    }.get(hint)
     if ok is None:
         raise TypeError(f"{field}: no JSON reader for {hint}")
     if not ok(v):

@@ -10,8 +10,9 @@ from gsavatar.models.net import AvatarNet
 
 
 @torch.no_grad()
-def mean_train_latent(net: AvatarNet, scene: PreparedScene, device: torch.device,
-                      texture_source: TextureSource = "projected") -> Tensor:
+def mean_train_latent(
+    net: AvatarNet, scene: PreparedScene, device: torch.device, texture_source: TextureSource = "projected"
+) -> Tensor:
     """Mean of the encoder's per-anchor latents (mu) over the training frames.  # [A, L]"""
     textures = frame_textures(scene, texture_source)
     frames = list(scene.capture.splits["train"].frames)

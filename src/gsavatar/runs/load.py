@@ -1,8 +1,8 @@
 """Load a trained run (``avatar-train avatar``/``predictor`` output) back into models.
 
-    RUN/config.json               {"train": TrainConfig, "model": ModelConfig, "dataset_id"}
-    RUN/checkpoints/latest.pt     the avatar net (:mod:`gsavatar.runs.checkpoint`)
-    RUN/predictor/latest.pt       the appearance predictor, when one was trained
+RUN/config.json               {"train": TrainConfig, "model": ModelConfig, "dataset_id"}
+RUN/checkpoints/latest.pt     the avatar net (:mod:`gsavatar.runs.checkpoint`)
+RUN/predictor/latest.pt       the appearance predictor, when one was trained
 """
 
 from __future__ import annotations
@@ -18,7 +18,14 @@ from gsavatar.models.config import ModelConfig
 from gsavatar.models.net import AvatarNet, build_net
 from gsavatar.models.predictor import KINEMATICS_KEYS, LEGACY_CONFIG, AppearancePredictor, PredictorConfig
 from gsavatar.runs.checkpoint import check_same_dataset, load_checkpoint
-from gsavatar.runs.config import TrainConfig, check_train_config, from_json, model_config, model_config_from_json, resolve
+from gsavatar.runs.config import (
+    TrainConfig,
+    check_train_config,
+    from_json,
+    model_config,
+    model_config_from_json,
+    resolve,
+)
 from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.jsonio import dataclass_defaults, read_json
 
@@ -65,7 +72,9 @@ def load_run(run: str | Path, device: str = "auto") -> LoadedRun:
     mcfg = model_config_from_json(saved["model"], cfg_path) if "model" in saved else model_config(cfg)
     net = build_net(scene, mcfg, cfg.seed).to(dev)
     ckpt = run / "checkpoints" / "latest.pt"
-    state = load_checkpoint(ckpt, saved, strict_config_keys=("model",), defaults={"model": dataclass_defaults(ModelConfig)})
+    state = load_checkpoint(
+        ckpt, saved, strict_config_keys=("model",), defaults={"model": dataclass_defaults(ModelConfig)}
+    )
     check_same_dataset(ckpt, state["config"], cfg.dataset, dataset_fingerprint(cfg.dataset))
     net.load_state_dict(state["modules"]["net"])
     net.eval()
@@ -86,7 +95,8 @@ def predictor_from_checkpoint(path: Path, device: str | torch.device = "cpu") ->
     cfg = PredictorConfig(**{**LEGACY_CONFIG, **state["config"]["model"]})  # fields older checkpoints lack
     pca = (sd["pose_pca_mean"], sd["pose_pca_basis"], sd["pose_pca_limit"]) if "pose_pca_basis" in sd else None
     kin = tuple(sd[k] for k in KINEMATICS_KEYS) if KINEMATICS_KEYS[0] in sd else None
-    m = AppearancePredictor(cfg, sd["latent_mean"].shape[0], sd["pose_slots"], int(state["config"]["pose_dim"]), pca,
-                            kinematics=kin)
+    m = AppearancePredictor(
+        cfg, sd["latent_mean"].shape[0], sd["pose_slots"], int(state["config"]["pose_dim"]), pca, kinematics=kin
+    )
     m.load_state_dict(sd)
     return m.to(device).eval()

@@ -15,20 +15,41 @@ from gsavatar.models.avatar import AvatarOutput
 from gsavatar.render import rasterize
 
 
-def render_views(out: AvatarOutput, viewmats: Tensor, Ks: Tensor, width: int, height: int, backgrounds: Tensor,
-                 sh_degree: int, backend: str) -> tuple[Tensor, Tensor]:
+def render_views(
+    out: AvatarOutput,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    backgrounds: Tensor,
+    sh_degree: int,
+    backend: str,
+) -> tuple[Tensor, Tensor]:
     """Render item i of the batch from its own camera. -> colors [B,3,h,w], alphas [B,1,h,w]."""
     cols, alps = [], []
     for i in range(out.means.shape[0]):
-        r = rasterize(out.means[i], out.quats[i], out.scales[i], out.opacities[i], out.sh[i], viewmats[i : i + 1],
-                      Ks[i : i + 1], width, height, backgrounds=backgrounds[i : i + 1], sh_degree=sh_degree, backend=backend)
+        r = rasterize(
+            out.means[i],
+            out.quats[i],
+            out.scales[i],
+            out.opacities[i],
+            out.sh[i],
+            viewmats[i : i + 1],
+            Ks[i : i + 1],
+            width,
+            height,
+            backgrounds=backgrounds[i : i + 1],
+            sh_degree=sh_degree,
+            backend=backend,
+        )
         cols.append(r.colors[0].permute(2, 0, 1))
         alps.append(r.alphas[0].permute(2, 0, 1))
     return torch.stack(cols), torch.stack(alps)
 
 
-def orbit_cameras(center: np.ndarray, radius: float, height: float, n: int, width: int, height_px: int,
-                  fov_deg: float = 40.0) -> tuple[torch.Tensor, torch.Tensor]:
+def orbit_cameras(
+    center: np.ndarray, radius: float, height: float, n: int, width: int, height_px: int, fov_deg: float = 40.0
+) -> tuple[torch.Tensor, torch.Tensor]:
     """``n`` cameras on a horizontal circle looking at ``center``. -> viewmats [n,4,4], Ks [n,3,3]."""
     f = 0.5 * height_px / np.tan(np.radians(fov_deg) / 2)
     K = np.array([[f, 0, width / 2 - 0.5], [0, f, height_px / 2 - 0.5], [0, 0, 1]], np.float32)

@@ -146,8 +146,14 @@ def rasterize_uv(template: Template, size: int) -> UVRaster:
     vn = vertex_normals(template.vertices, template.faces)
     nrm = np.einsum("nk,nkc->nc", b, vn[vid])
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-    return UVRaster(face_id, bary, covered, source, pos.reshape(size, size, 3).astype(np.float32),
-                    nrm.reshape(size, size, 3).astype(np.float32))
+    return UVRaster(
+        face_id,
+        bary,
+        covered,
+        source,
+        pos.reshape(size, size, 3).astype(np.float32),
+        nrm.reshape(size, size, 3).astype(np.float32),
+    )
 
 
 # --------------------------------------------------------------------------- body regions
@@ -241,10 +247,21 @@ class AppearanceModel:
         Needed when ``config.motion_effects`` is not empty; ``joint_names`` [J] names them.
     """
 
-    def __init__(self, template: Template, num_frames: int, *, train_frames: Sequence[int] | None = None,
-                 coupling_signal: np.ndarray | None = None, rig: Rig | None = None, seed: int = 0,
-                 tex_size: int = 512, fps: float = 30.0, config: AppearanceConfig | None = None,
-                 joint_positions: np.ndarray | None = None, joint_names: Sequence[str] = ()) -> None:
+    def __init__(
+        self,
+        template: Template,
+        num_frames: int,
+        *,
+        train_frames: Sequence[int] | None = None,
+        coupling_signal: np.ndarray | None = None,
+        rig: Rig | None = None,
+        seed: int = 0,
+        tex_size: int = 512,
+        fps: float = 30.0,
+        config: AppearanceConfig | None = None,
+        joint_positions: np.ndarray | None = None,
+        joint_names: Sequence[str] = (),
+    ) -> None:
         if num_frames <= 0:
             raise ValueError(f"num_frames must be positive, got {num_frames}")
         if tex_size < 16:
@@ -268,8 +285,11 @@ class AppearanceModel:
         self._build_dynamics(r_chain, r_drift, r_face, r_couple, train_frames, coupling_signal)
         # Its own stream (spawned past the first six), so turning it on changes nothing else.
         r_tint = np.random.default_rng(ss.spawn(1)[0])
-        self.trouser_tint = (_smooth_process(r_tint, self.num_frames, self.fps, self.config.trouser_tint_period_s, 1)[:, 0]
-                             if self.config.trouser_tint_range > 0 else np.zeros(self.num_frames))
+        self.trouser_tint = (
+            _smooth_process(r_tint, self.num_frames, self.fps, self.config.trouser_tint_period_s, 1)[:, 0]
+            if self.config.trouser_tint_range > 0
+            else np.zeros(self.num_frames)
+        )
         cfg = self.config
         if cfg.dye_garment not in ("none", "shirt", "trousers"):
             raise ValueError(f"dye_garment must be 'none', 'shirt' or 'trousers', got {cfg.dye_garment!r}")
@@ -277,8 +297,9 @@ class AppearanceModel:
         self._dye_gains = np.ones((1, 3), np.float32)
         if cfg.dye_garment != "none":
             if cfg.dye_states < 2 or not 0 < cfg.dye_strength < 1:
-                raise ValueError(f"dye_states must be >= 2 and dye_strength in (0, 1), got {cfg.dye_states}, "
-                                 f"{cfg.dye_strength}")
+                raise ValueError(
+                    f"dye_states must be >= 2 and dye_strength in (0, 1), got {cfg.dye_states}, {cfg.dye_strength}"
+                )
             r_dye = np.random.default_rng(ss.spawn(1)[0])
             p = min(1.0, 1.0 / max(cfg.dye_dwell_s * self.fps, 1.0))
             self.dye = _markov_chain(r_dye, self.num_frames, cfg.dye_states, p)
@@ -301,8 +322,10 @@ class AppearanceModel:
         if not effects:
             return
         if joint_positions is None or np.shape(joint_positions)[:1] != (self.num_frames,):
-            raise ValueError(f"config.motion_effects need joint_positions [num_frames={self.num_frames}, J, 3], got "
-                             f"{None if joint_positions is None else tuple(np.shape(joint_positions))}")
+            raise ValueError(
+                f"config.motion_effects need joint_positions [num_frames={self.num_frames}, J, 3], got "
+                f"{None if joint_positions is None else tuple(np.shape(joint_positions))}"
+            )
         if len({e.name for e in effects}) != len(effects):
             raise ValueError(f"motion effect names must be unique, got {[e.name for e in effects]}")
         H = self.body_height
@@ -310,8 +333,9 @@ class AppearanceModel:
         for e in effects:
             e.check()
             if e.region not in self.regions:
-                raise ValueError(f"motion effect {e.name!r}: region must be one of {sorted(self.regions)}, got "
-                                 f"{e.region!r}")
+                raise ValueError(
+                    f"motion effect {e.name!r}: region must be one of {sorted(self.regions)}, got {e.region!r}"
+                )
             u = joint_signal(np.asarray(joint_positions), joint_names, e, self.fps)
             level, const = effect_level(e, u, self.fps)
             self.motion_signals[e.name], self.motion_levels[e.name], self.motion_constants[e.name] = u, level, const
@@ -336,8 +360,13 @@ class AppearanceModel:
         self.body_height = float(template.vertices[:, 1].max()) - ymin
         H = self.body_height
         y = (p[..., 1] - ymin) / H
-        skin = np.maximum.reduce([_smoothstep(0.35, 0.65, reg["head"]), _smoothstep(0.35, 0.65, reg["hand"]),
-                                  _smoothstep(0.35, 0.65, reg["forearm"])])
+        skin = np.maximum.reduce(
+            [
+                _smoothstep(0.35, 0.65, reg["head"]),
+                _smoothstep(0.35, 0.65, reg["hand"]),
+                _smoothstep(0.35, 0.65, reg["forearm"]),
+            ]
+        )
         shoe = _smoothstep(0.35, 0.65, reg["foot"]) * (1 - skin)
         trousers = (1 - _smoothstep(0.565, 0.575, y)) * (1 - skin) * (1 - shoe)
         shirt = np.clip(1 - skin - shoe - trousers, 0, 1)
@@ -376,8 +405,9 @@ class AppearanceModel:
         k = rng.normal(0, 1, (6, 3)) * (2 * np.pi / 0.35)
         ph = rng.uniform(0, 2 * np.pi, 6)
         lowfreq = 1 + 0.035 * np.sin(p @ k.T + ph).mean(1, keepdims=True)
-        base = (r["skin"] * skin_c + r["shirt"] * shirt_c * stripes + r["trousers"] * trou_c * twill
-                + r["shoe"] * shoe_c) * lowfreq
+        base = (
+            r["skin"] * skin_c + r["shirt"] * shirt_c * stripes + r["trousers"] * trou_c * twill + r["shoe"] * shoe_c
+        ) * lowfreq
         base = base * (1 - r["hair"]) + r["hair"] * self._hair_color * lowfreq
         # A contrasting chest logo on the shirt front (handy to eyeball registration).
         torso = self.regions["shirt"].reshape(-1) > 0.5
@@ -519,7 +549,8 @@ class AppearanceModel:
         f = self._check(frame)
         cfg = self.config
         shade = 1.0 - cfg.fold_strength * np.minimum(
-            self._folds["shirt"][self.shirt_fold[f]] + self._folds["trousers"][self.trouser_fold[f]], 1.0)
+            self._folds["shirt"][self.shirt_fold[f]] + self._folds["trousers"][self.trouser_fold[f]], 1.0
+        )
         tex = self._base * shade[..., None]
         flat = tex.reshape(-1, 3)
         sflat = shade.reshape(-1)
@@ -538,7 +569,9 @@ class AppearanceModel:
             c = self._patch_center + np.array([0.0, cfg.back_patch_shift * float(self.back_shift[f]), 0.0], np.float32)
             d = np.linalg.norm(self._patch_pos - c, axis=1)
             m = (_smoothstep(0.085, 0.075, d) * self._patch_w[:, 0])[:, None]
-            flat[self._patch_idx] = flat[self._patch_idx] * (1 - m) + m * self._patch_color * sflat[self._patch_idx, None]
+            flat[self._patch_idx] = (
+                flat[self._patch_idx] * (1 - m) + m * self._patch_color * sflat[self._patch_idx, None]
+            )
         if len(self._face_idx):
             delta = (self.face_embedding[f][:, None] * self._face_blobs).T @ self._face_tints  # [N, 3]
             flat[self._face_idx] += cfg.face_strength * delta

@@ -80,7 +80,15 @@ JOINT_GROUPS: dict[str, str] = {
 
 # Segmentation labels (anny/data/segmentation) added to the face mask besides the face
 # skin: eyes and the mouth/eye cavities move with facial expression.
-_FACE_EXTRA_LABELS = ("eye_front.L", "eye_front.R", "eye_back.L", "eye_back.R", "eye_cavity.L", "eye_cavity.R", "mouth_cavity")
+_FACE_EXTRA_LABELS = (
+    "eye_front.L",
+    "eye_front.R",
+    "eye_back.L",
+    "eye_back.R",
+    "eye_cavity.L",
+    "eye_cavity.R",
+    "mouth_cavity",
+)
 _DROP_LABELS = ("tongue",)  # internal geometry, never visible in a closed-mouth capture
 
 
@@ -95,8 +103,10 @@ def group_of_joint(name: str) -> str:
     if name in JOINT_GROUPS:
         return JOINT_GROUPS[name]
     n = name.lower()
-    side = "left" if (n.startswith("l") and not n.startswith("low")) or ".l" in n or "left" in n else (
-        "right" if n.startswith("r") or ".r" in n or "right" in n else None
+    side = (
+        "left"
+        if (n.startswith("l") and not n.startswith("low")) or ".l" in n or "left" in n
+        else ("right" if n.startswith("r") or ".r" in n or "right" in n else None)
     )
     if side is not None:
         if any(k in n for k in ("hand", "finger", "thumb", "wrist", "palm")):
@@ -111,7 +121,8 @@ def group_of_joint(name: str) -> str:
 def make_rig(names: list[str], parents: list[int], heads: np.ndarray) -> Rig:
     """Rig with three euler params (``.rz .ry .rx``) per non-root joint, grouped by body part."""
     joints = [
-        Joint(n, None if p < 0 else names[p], tuple(float(x) for x in h)) for n, p, h in zip(names, parents, np.asarray(heads))
+        Joint(n, None if p < 0 else names[p], tuple(float(x) for x in h))
+        for n, p, h in zip(names, parents, np.asarray(heads))
     ]
     params: list[PoseParam] = []
     groups: dict[str, list[str]] = {g: [] for g in BODY_GROUPS}
@@ -355,7 +366,8 @@ def _closest_points(verts: np.ndarray, faces: np.ndarray, query: np.ndarray) -> 
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
-        o3d.core.Tensor(np.ascontiguousarray(verts, np.float32)), o3d.core.Tensor(np.ascontiguousarray(faces, np.uint32))
+        o3d.core.Tensor(np.ascontiguousarray(verts, np.float32)),
+        o3d.core.Tensor(np.ascontiguousarray(faces, np.uint32)),
     )
     ans = scene.compute_closest_points(o3d.core.Tensor(np.ascontiguousarray(query, np.float32)))
     tri = ans["primitive_ids"].numpy().astype(np.int64)
@@ -427,7 +439,9 @@ def decimate_template(t: Template, target_vertices: int) -> Template:
     # skin weights: barycentric blend of the dense weights of the closest original point
     J = int(t.skin_indices.max()) + 1
     W0 = np.zeros((len(V0), J))
-    np.add.at(W0, (np.repeat(np.arange(len(V0)), t.skin_indices.shape[1]), t.skin_indices.ravel()), t.skin_weights.ravel())
+    np.add.at(
+        W0, (np.repeat(np.arange(len(V0)), t.skin_indices.shape[1]), t.skin_indices.ravel()), t.skin_weights.ravel()
+    )
     tri_v, bc_v = _closest_points(V0, F0, V)
     W = np.einsum("nk,nkj->nj", bc_v, W0[F0[tri_v]])
     idx, w = topk_weights(W, t.skin_indices.shape[1])

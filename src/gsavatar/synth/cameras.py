@@ -54,18 +54,30 @@ def camera_kind(name: str) -> str:
     return name.rstrip("0123456789")
 
 
-def _intrinsics(width: int, height: int, dist_to_target: float, half_v: float, half_h: float,
-                jitter: np.ndarray) -> np.ndarray:
+def _intrinsics(
+    width: int, height: int, dist_to_target: float, half_v: float, half_h: float, jitter: np.ndarray
+) -> np.ndarray:
     f = min(height / 2 * dist_to_target / half_v, width / 2 * dist_to_target / half_h)
-    return np.array([[f, 0.0, width / 2 + jitter[0] * width],
-                     [0.0, f, height / 2 + jitter[1] * height],
-                     [0.0, 0.0, 1.0]])
+    return np.array(
+        [[f, 0.0, width / 2 + jitter[0] * width], [0.0, f, height / 2 + jitter[1] * height], [0.0, 0.0, 1.0]]
+    )
 
 
-def make_dome(num_cams: int, width: int, height: int, body_height: float = 1.7, seed: int = 0,
-              distortion: bool = False, *, center: Sequence[float] = (0.0, 0.0), radius: float = 3.2,
-              reach: float = 0.8, y_range: Sequence[float] | None = None, margin: float = 1.08,
-              max_k1: float = 0.05) -> dict[str, Camera]:
+def make_dome(
+    num_cams: int,
+    width: int,
+    height: int,
+    body_height: float = 1.7,
+    seed: int = 0,
+    distortion: bool = False,
+    *,
+    center: Sequence[float] = (0.0, 0.0),
+    radius: float = 3.2,
+    reach: float = 0.8,
+    y_range: Sequence[float] | None = None,
+    margin: float = 1.08,
+    max_k1: float = 0.05,
+) -> dict[str, Camera]:
     """An evenly split full/upper/lower-body dome around a body standing at ``center``.
 
     num_cams: total number of cameras (split with :func:`dome_kinds`).
@@ -108,19 +120,31 @@ def make_dome(num_cams: int, width: int, height: int, body_height: float = 1.7, 
             target = np.array([cx, target_y, cz]) + rng.uniform(-0.02, 0.02, 3)
             R, T = look_at(eye, target)
             d = float(np.linalg.norm(target - eye))
-            K = _intrinsics(width, height, d, half_v * margin, max(half_h * reach, 0.25 * H) * margin,
-                            rng.uniform(-0.02, 0.02, 2))
+            K = _intrinsics(
+                width, height, d, half_v * margin, max(half_h * reach, 0.25 * H) * margin, rng.uniform(-0.02, 0.02, 2)
+            )
             dist = np.zeros(5)
             if distortion and rng.random() < 0.5:
-                dist[:4] = [rng.uniform(-max_k1, max_k1), rng.uniform(-0.2, 0.2) * max_k1,
-                            rng.uniform(-1e-3, 1e-3), rng.uniform(-1e-3, 1e-3)]
+                dist[:4] = [
+                    rng.uniform(-max_k1, max_k1),
+                    rng.uniform(-0.2, 0.2) * max_k1,
+                    rng.uniform(-1e-3, 1e-3),
+                    rng.uniform(-1e-3, 1e-3),
+                ]
             name = f"{kind}{i:02d}"
             cams[name] = Camera(name, K, R, T, dist, int(width), int(height))
     return cams
 
 
-def special_cameras(kinds: Sequence[SpecialKind], width: int, height: int, body_height: float = 1.7,
-                    *, center: Sequence[float] = (0.0, 0.0), reach: float = 0.8) -> dict[str, Camera]:
+def special_cameras(
+    kinds: Sequence[SpecialKind],
+    width: int,
+    height: int,
+    body_height: float = 1.7,
+    *,
+    center: Sequence[float] = (0.0, 0.0),
+    reach: float = 0.8,
+) -> dict[str, Camera]:
     """Stress-test views: ``top`` (above the head looking almost straight down: grazing on the
     body's sides), ``floor`` (at the feet, looking up along the body: grazing, sees surfaces
     no ring camera sees), ``away`` (on the dome, pointed away from the body: sees nothing)."""

@@ -45,14 +45,18 @@ class Synth:
             load_capture(self.out)  # validates; an existing complete capture is reused, not rebuilt
             print(f"{self.out} already holds a valid capture; reusing it (--overwrite to rebuild)")
             return
-        claim_output_dir(Path(self.out), "capture", self.force_out, "--force-out")  # not registered: it fills the anny cache too
+        claim_output_dir(
+            Path(self.out), "capture", self.force_out, "--force-out"
+        )  # not registered: it fills the anny cache too
         make_capture(cfg, Path(self.out), self.anny_cache or default_anny_cache(), overwrite=self.overwrite)
         print(f"capture written to {self.out}")
         fair = Path(self.out) / "gt" / "fairness.json"
         if fair.exists():
             d = read_json(fair)
-            print(f"history-caused appearance ({', '.join(e.name for e in cfg.appearance.motion_effects)}): R^2 on test "
-                  f"frames from the current pose {d['pose_only']:.2f}, from the last {d['history_frames']} poses "
-                  f"{d['history']:.2f} ({fair})")
+            print(
+                f"history-caused appearance ({', '.join(e.name for e in cfg.appearance.motion_effects)}): R^2 on test "
+                f"frames from the current pose {d['pose_only']:.2f}, from the last {d['history_frames']} poses "
+                f"{d['history']:.2f} ({fair})"
+            )
             for w in few_event_states(d, [e.name for e in cfg.appearance.motion_effects]):
                 print(f"warning: {w}")

@@ -20,7 +20,7 @@ import numpy as np
 
 HISTORY = 10
 """Poses in the history window of the ``history`` regressor (the paper's N_b)."""
-ALPHAS = tuple(10.0 ** k for k in range(-3, 5))
+ALPHAS = tuple(10.0**k for k in range(-3, 5))
 
 
 def pose_features(pose: np.ndarray, root_translation: np.ndarray, joints: np.ndarray | None = None) -> np.ndarray:
@@ -78,7 +78,7 @@ def ridge_cv(X: np.ndarray, Y: np.ndarray, folds: int = 5) -> float:
         err = 0.0
         for k in range(len(edges) - 1):
             va = np.zeros(n, bool)
-            va[edges[k]:edges[k + 1]] = True
+            va[edges[k] : edges[k + 1]] = True
             if va.all() or not va.any():
                 continue
             m = _ridge_fit(X[~va], Y[~va], a)
@@ -108,12 +108,23 @@ def few_event_states(fairness: dict, names: list[str]) -> list[str]:
     """Warnings for states that cross their training mean fewer than :data:`MIN_TRAIN_CROSSINGS` times in the
     training frames (``fairness`` from :func:`predictability`)."""
     counts = fairness.get("crossings", {}).get("train", [])
-    return [f"state {n!r} crosses its training mean only {c} times in the training frames: too few events for a "
-            f"predictor to learn what causes it" for n, c in zip(names, counts) if c < MIN_TRAIN_CROSSINGS]
+    return [
+        f"state {n!r} crosses its training mean only {c} times in the training frames: too few events for a "
+        f"predictor to learn what causes it"
+        for n, c in zip(names, counts)
+        if c < MIN_TRAIN_CROSSINGS
+    ]
 
 
-def predictability(features: np.ndarray, states: np.ndarray, train: np.ndarray, test: np.ndarray,
-                   history: int = HISTORY, components: int = 12, raw_columns: int = 0) -> dict:
+def predictability(
+    features: np.ndarray,
+    states: np.ndarray,
+    train: np.ndarray,
+    test: np.ndarray,
+    history: int = HISTORY,
+    components: int = 12,
+    raw_columns: int = 0,
+) -> dict:
     """R^2 on ``test`` rows of the pose-only and the history regressor fit on ``train`` rows.
 
     features [F, D] per-frame inputs (the last ``raw_columns`` are kept as they are, the others reduced to
@@ -149,18 +160,30 @@ def predictability(features: np.ndarray, states: np.ndarray, train: np.ndarray, 
         out[f"{name}_alpha"] = alphas
     raw = np.asarray(states, np.float64).reshape(len(x), -1)
     out["crossings"] = {"train": mean_crossings(raw[train], ym), "test": mean_crossings(raw[test], ym)}
-    out.update({"metric": "R^2 on test frames, pooled over standardised states", "history_frames": history,
-                "regressor": f"ridge on {z.shape[1] - raw_columns} pose PCA components (+ {raw_columns} raw), alpha "
-                              "per state by 5-fold contiguous CV, clipped to the training range"})
+    out.update(
+        {
+            "metric": "R^2 on test frames, pooled over standardised states",
+            "history_frames": history,
+            "regressor": f"ridge on {z.shape[1] - raw_columns} pose PCA components (+ {raw_columns} raw), alpha "
+            "per state by 5-fold contiguous CV, clipped to the training range",
+        }
+    )
     return out
 
 
-def history_fairness(motion, states: np.ndarray, train: np.ndarray, test: np.ndarray, history: int = HISTORY,
-                     joints: np.ndarray | None = None) -> dict:
+def history_fairness(
+    motion,
+    states: np.ndarray,
+    train: np.ndarray,
+    test: np.ndarray,
+    history: int = HISTORY,
+    joints: np.ndarray | None = None,
+) -> dict:
     """:func:`predictability` of the appearance ``states`` [F, E] from a capture's ``motion`` and its posed
     ``joints`` [F, J, 3] (JSON-ready)."""
-    res = predictability(pose_features(motion.pose, motion.root_translation, joints), states, train, test, history,
-                         raw_columns=1)
+    res = predictability(
+        pose_features(motion.pose, motion.root_translation, joints), states, train, test, history, raw_columns=1
+    )
 
     def clean(v):
         if isinstance(v, dict):
@@ -185,8 +208,9 @@ def capture_fairness(capture) -> dict:
     z = read_npz(capture / "gt" / "motion_states.npz", keys=("levels",))
     m = cap.motion
     joints = pose_joint_positions(cap.rig, m.pose, m.root_rotation, m.root_translation)
-    return history_fairness(m, z["levels"], np.asarray(cap.splits["train"].frames),
-                            np.asarray(cap.splits["test"].frames), joints=joints)
+    return history_fairness(
+        m, z["levels"], np.asarray(cap.splits["train"].frames), np.asarray(cap.splits["test"].frames), joints=joints
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -198,8 +222,10 @@ def main(argv: list[str] | None = None) -> int:
     from gsavatar.utils.cli import run_reporting_errors
     from gsavatar.utils.io import atomic_write_json
 
-    ap = argparse.ArgumentParser(description="How well pose alone / the pose history predict a synthetic "
-                                 "capture's history-caused appearance states (R^2 on test frames).")
+    ap = argparse.ArgumentParser(
+        description="How well pose alone / the pose history predict a synthetic "
+        "capture's history-caused appearance states (R^2 on test frames)."
+    )
     ap.add_argument("capture", type=Path)
     ap.add_argument("--write", action="store_true", help="rewrite CAPTURE/gt/fairness.json")
     a = ap.parse_args(argv)

@@ -45,8 +45,17 @@ from gsavatar.synth.appearance import AppearanceModel
 from gsavatar.synth.cameras import camera_kind, make_dome, special_cameras
 from gsavatar.synth.fairness import history_fairness
 from gsavatar.synth.presets import SynthConfig
-from gsavatar.synth.render import (FrameScene, Shading, TriMesh, box_mesh, pose_joint_positions, pose_vertices,
-                                   render_view, supersampled_rays, texel_visibility)
+from gsavatar.synth.render import (
+    FrameScene,
+    Shading,
+    TriMesh,
+    box_mesh,
+    pose_joint_positions,
+    pose_vertices,
+    render_view,
+    supersampled_rays,
+    texel_visibility,
+)
 from gsavatar.utils.io import atomic_save_npz, atomic_write_json, write_image
 
 GT_FORMAT = "gsavatar-synth-gt"
@@ -62,8 +71,10 @@ def load_motion(cfg: SynthConfig, rig: Rig) -> Motion:
 
     m = motion_from_bvh_file(cfg.bvh_path, rig, fps_out=cfg.fps, start=cfg.bvh_start, count=cfg.num_frames)
     if len(m.pose) != cfg.num_frames:
-        raise ValueError(f"{cfg.bvh_path}: only {len(m.pose)} frames from source frame {cfg.bvh_start} at "
-                         f"{cfg.fps} fps, num_frames={cfg.num_frames} requested; lower bvh_start or num_frames")
+        raise ValueError(
+            f"{cfg.bvh_path}: only {len(m.pose)} frames from source frame {cfg.bvh_start} at "
+            f"{cfg.fps} fps, num_frames={cfg.num_frames} requested; lower bvh_start or num_frames"
+        )
     t = m.root_translation.astype(np.float64).copy()
     if cfg.root_xz in ("center", "treadmill"):
         t[:, [0, 2]] -= t[:, [0, 2]].mean(0)
@@ -85,8 +96,12 @@ def coupling_slot(rig: Rig, pose: np.ndarray, train_frames: np.ndarray, name: st
     joint_of = [rig.params[i].joint for i in slots]
     from gsavatar.data_schema.rig import BODY_GROUPS
 
-    for pick in (lambda s: joint_of[s] == "RightHand", lambda s: BODY_GROUPS[groups[s]] == "right_hand",
-                 lambda s: BODY_GROUPS[groups[s]] == "right_arm", lambda s: True):
+    for pick in (
+        lambda s: joint_of[s] == "RightHand",
+        lambda s: BODY_GROUPS[groups[s]] == "right_hand",
+        lambda s: BODY_GROUPS[groups[s]] == "right_arm",
+        lambda s: True,
+    ):
         cand = [s for s in range(len(slots)) if pick(s)]
         if cand and std[cand].max() > 1e-4:
             s = int(max(cand, key=lambda i: std[i]))
@@ -169,8 +184,15 @@ def _render_frame(frame: int) -> dict:
         sc = scene
         if job.occluders.get(name):
             sc = FrameScene(verts, job.faces, job.corner_uvs, extras=job.occluders[name], nthreads=1)
-        r = render_view(sc, cam, tex, supersample=job.supersample, shading=job.shading,
-                        background=job.background, rays=job.rays[name])
+        r = render_view(
+            sc,
+            cam,
+            tex,
+            supersample=job.supersample,
+            shading=job.shading,
+            background=job.background,
+            rays=job.rays[name],
+        )
         img = r.image
         if name == job.corrupted_camera and frame in job.corrupted_frames:
             img = corrupt_image(img, np.random.default_rng([job.seed, 7919, frame]))
@@ -183,8 +205,9 @@ def _render_frame(frame: int) -> dict:
 
 
 # --------------------------------------------------------------------------- build
-def make_capture(cfg: SynthConfig, out_dir: str | Path, anny_cache_dir: str | Path, progress: bool = True,
-                 overwrite: bool = False) -> Path:
+def make_capture(
+    cfg: SynthConfig, out_dir: str | Path, anny_cache_dir: str | Path, progress: bool = True, overwrite: bool = False
+) -> Path:
     """Write a synthetic capture (format v1) and its ``gt/`` folder to ``out_dir``. Returns ``out_dir``.
 
     anny_cache_dir: Anny's model-data cache (``ANNY_CACHE_DIR``; built on first use, ~80 s).
@@ -204,8 +227,10 @@ def make_capture(cfg: SynthConfig, out_dir: str | Path, anny_cache_dir: str | Pa
             (out / f).unlink(missing_ok=True)
     out.mkdir(parents=True, exist_ok=True)
     if cfg.supersample < 1 or cfg.num_frames < 2 or cfg.num_cams < 1:
-        raise ValueError(f"need supersample >= 1, num_frames >= 2, num_cams >= 1; got {cfg.supersample}, "
-                         f"{cfg.num_frames}, {cfg.num_cams}")
+        raise ValueError(
+            f"need supersample >= 1, num_frames >= 2, num_cams >= 1; got {cfg.supersample}, "
+            f"{cfg.num_frames}, {cfg.num_cams}"
+        )
 
     template, rig = build_anny_body(Path(anny_cache_dir), decimate_to=cfg.decimate_to, seed=cfg.body_seed)
     motion = load_motion(cfg, rig)
@@ -218,8 +243,18 @@ def make_capture(cfg: SynthConfig, out_dir: str | Path, anny_cache_dir: str | Pa
     reach = float(np.linalg.norm(xz - center, axis=1).max())
     body_height = float(template.vertices[:, 1].max() - template.vertices[:, 1].min())
     y_range = (float(verts[..., 1].min()), float(verts[..., 1].max()))
-    cameras = make_dome(cfg.num_cams, cfg.width, cfg.height, body_height, cfg.seed, cfg.distortion,
-                        center=center, radius=cfg.cam_radius, reach=reach, y_range=y_range)
+    cameras = make_dome(
+        cfg.num_cams,
+        cfg.width,
+        cfg.height,
+        body_height,
+        cfg.seed,
+        cfg.distortion,
+        center=center,
+        radius=cfg.cam_radius,
+        reach=reach,
+        y_range=y_range,
+    )
     cameras |= special_cameras(cfg.special_cameras, cfg.width, cfg.height, body_height, center=center, reach=reach)
     for key, name in (("occluded_camera", cfg.occluded_camera), ("corrupted_camera", cfg.corrupted_camera)):
         if name is not None and name not in cameras:
@@ -234,11 +269,24 @@ def make_capture(cfg: SynthConfig, out_dir: str | Path, anny_cache_dir: str | Pa
     splits = default_splits(cfg, cameras)
     train = np.asarray(splits["train"].frames)
     slot, pname = coupling_slot(rig, motion.pose, train, cfg.coupled_param)
-    joints = (pose_joint_positions(rig, motion.pose, motion.root_rotation, motion.root_translation)
-              if cfg.appearance.motion_effects else None)
-    app = AppearanceModel(template, F, train_frames=train, coupling_signal=motion.pose[:, slot], rig=rig,
-                          seed=cfg.seed, tex_size=cfg.tex_size, fps=cfg.fps, config=cfg.appearance,
-                          joint_positions=joints, joint_names=[j.name for j in rig.joints])
+    joints = (
+        pose_joint_positions(rig, motion.pose, motion.root_rotation, motion.root_translation)
+        if cfg.appearance.motion_effects
+        else None
+    )
+    app = AppearanceModel(
+        template,
+        F,
+        train_frames=train,
+        coupling_signal=motion.pose[:, slot],
+        rig=rig,
+        seed=cfg.seed,
+        tex_size=cfg.tex_size,
+        fps=cfg.fps,
+        config=cfg.appearance,
+        joint_positions=joints,
+        joint_names=[j.name for j in rig.joints],
+    )
     motion = Motion(motion.pose, motion.root_rotation, motion.root_translation, app.face_embedding)
     rng = np.random.default_rng([cfg.seed, 31])
     corrupted: list[int] = []
@@ -252,51 +300,88 @@ def make_capture(cfg: SynthConfig, out_dir: str | Path, anny_cache_dir: str | Pa
     motion.save(out / "motion.npz")
     gt = out / "gt"
     atomic_write_json(gt / "config.json", cfg.to_json())
-    atomic_save_npz(gt / "regions.npz", covered=app.uv.covered.astype(np.uint8) * 255,
-                    **{k: np.rint(np.clip(v, 0, 1) * 255).astype(np.uint8) for k, v in app.regions.items()})
+    atomic_save_npz(
+        gt / "regions.npz",
+        covered=app.uv.covered.astype(np.uint8) * 255,
+        **{k: np.rint(np.clip(v, 0, 1) * 255).astype(np.uint8) for k, v in app.regions.items()},
+    )
 
     if app.motion_levels:
         names = list(app.motion_levels)
         levels = np.stack([app.motion_levels[k] for k in names], 1).astype(np.float32)  # [F, E]
         signals = np.stack([app.motion_signals[k] for k in names], 1).astype(np.float32)
         atomic_save_npz(gt / "motion_states.npz", names=np.array(names), levels=levels, signals=signals)
-        atomic_write_json(gt / "fairness.json",
-                          history_fairness(motion, levels, train, np.asarray(splits["test"].frames), joints=joints))
+        atomic_write_json(
+            gt / "fairness.json",
+            history_fairness(motion, levels, train, np.asarray(splits["test"].frames), joints=joints),
+        )
 
-    job = _RenderJob(out, template.faces, template.corner_uvs, verts, cameras, app, cfg.supersample,
-                     Shading() if cfg.shading else None, tuple(cfg.background), occluders, cfg.corrupted_camera,
-                     frozenset(corrupted), cfg.seed)
+    job = _RenderJob(
+        out,
+        template.faces,
+        template.corner_uvs,
+        verts,
+        cameras,
+        app,
+        cfg.supersample,
+        Shading() if cfg.shading else None,
+        tuple(cfg.background),
+        occluders,
+        cfg.corrupted_camera,
+        frozenset(corrupted),
+        cfg.seed,
+    )
     results = _render_all(job, F, cfg.workers, progress)
 
     views = results[0]["views"]
     atomic_save_npz(gt / "texel_views.npz", count=views.reshape(cfg.tex_size, cfg.tex_size), frame=np.int64(0))
-    atomic_write_json(gt / "states.json", {
-        "format": GT_FORMAT,
-        "version": GT_VERSION,
-        "preset": cfg.preset,
-        "seed": cfg.seed,
-        "texture_size": cfg.tex_size,
-        "textures": "gt/textures/{frame:08d}.png: UNSHADED albedo; images are albedo x shading "
-                    f"({'ambient 0.65 + 0.35 Lambert' if cfg.shading else 'none'})",
-        "coupling": {"garment": "trousers", "state": "trouser_fold", "param": pname, "slot": slot,
-                     "threshold": app.coupling_threshold, "states_low_high": list(app.coupling_states)},
-        "coupled_frames": [int(f) for f in np.flatnonzero(app.coupled)],
-        "corrupted": {"camera": cfg.corrupted_camera, "frames": corrupted},
-        "occluded_camera": cfg.occluded_camera,
-        "special_cameras": list(cfg.special_cameras),
-        "camera_kinds": {n: (n if n in cfg.special_cameras else camera_kind(n)) for n in cameras},
-        "dome": {"center_xz": [float(x) for x in center], "reach": reach, "y_range": list(y_range),
-                 "body_height": body_height},
-        "mean_color_frame0": results[0]["mean_color"],
-        "motion_effects": {k: {"constants": app.motion_constants[k]} for k in app.motion_levels},
-        "frames": app.states(),
-    })
+    atomic_write_json(
+        gt / "states.json",
+        {
+            "format": GT_FORMAT,
+            "version": GT_VERSION,
+            "preset": cfg.preset,
+            "seed": cfg.seed,
+            "texture_size": cfg.tex_size,
+            "textures": "gt/textures/{frame:08d}.png: UNSHADED albedo; images are albedo x shading "
+            f"({'ambient 0.65 + 0.35 Lambert' if cfg.shading else 'none'})",
+            "coupling": {
+                "garment": "trousers",
+                "state": "trouser_fold",
+                "param": pname,
+                "slot": slot,
+                "threshold": app.coupling_threshold,
+                "states_low_high": list(app.coupling_states),
+            },
+            "coupled_frames": [int(f) for f in np.flatnonzero(app.coupled)],
+            "corrupted": {"camera": cfg.corrupted_camera, "frames": corrupted},
+            "occluded_camera": cfg.occluded_camera,
+            "special_cameras": list(cfg.special_cameras),
+            "camera_kinds": {n: (n if n in cfg.special_cameras else camera_kind(n)) for n in cameras},
+            "dome": {
+                "center_xz": [float(x) for x in center],
+                "reach": reach,
+                "y_range": list(y_range),
+                "body_height": body_height,
+            },
+            "mean_color_frame0": results[0]["mean_color"],
+            "motion_effects": {k: {"constants": app.motion_constants[k]} for k in app.motion_levels},
+            "frames": app.states(),
+        },
+    )
     write_capture_metadata(out, cfg.fps, F, cameras, splits)
     return out
 
 
 def _render_all(job: _RenderJob, num_frames: int, workers: int, progress: bool) -> dict[int, dict]:
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     n = workers if workers > 0 else (os.cpu_count() or 1)
     if workers <= 0:
@@ -305,7 +390,13 @@ def _render_all(job: _RenderJob, num_frames: int, workers: int, progress: bool) 
         n = n if rays > 3e7 else 1
     n = max(1, min(n, num_frames))
     results: dict[int, dict] = {}
-    cols = (TextColumn("[bold]render[/]"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn())
+    cols = (
+        TextColumn("[bold]render[/]"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+    )
     with Progress(*cols, disable=not progress) as bar:
         task = bar.add_task("frames", total=num_frames)
         if n == 1:
@@ -315,8 +406,9 @@ def _render_all(job: _RenderJob, num_frames: int, workers: int, progress: bool) 
                 bar.advance(task)
         else:
             # spawn, not fork: the parent has live torch/Embree thread pools that fork cannot copy safely.
-            with ProcessPoolExecutor(n, mp_context=get_context("spawn"), initializer=_init_worker,
-                                     initargs=(job,)) as pool:
+            with ProcessPoolExecutor(
+                n, mp_context=get_context("spawn"), initializer=_init_worker, initargs=(job,)
+            ) as pool:
                 for r in pool.map(_render_frame, range(num_frames), chunksize=1):
                     results[r["frame"]] = r
                     bar.advance(task)
@@ -348,7 +440,11 @@ def main() -> int:
     from gsavatar.synth.presets import PRESET_HELP, PRESETS
 
     args = tyro.extras.overridable_config_cli(
-        {name: (PRESET_HELP[name], MakeArgs(out=Path(f"captures/synth_{name}"), config=cfg)) for name, cfg in PRESETS.items()})
+        {
+            name: (PRESET_HELP[name], MakeArgs(out=Path(f"captures/synth_{name}"), config=cfg))
+            for name, cfg in PRESETS.items()
+        }
+    )
     cfg = args.config
     cache = args.anny_cache or default_anny_cache()
     from gsavatar.utils.cli import run_reporting_errors
@@ -358,8 +454,10 @@ def main() -> int:
         claim_output_dir(args.out, "capture", args.force_out, "--force-out")
         t0 = time.perf_counter()
         make_capture(cfg, args.out, cache, progress=True, overwrite=args.overwrite)
-        print(f"wrote {args.out} ({cfg.preset}: {cfg.num_cams + len(cfg.special_cameras)} cameras x {cfg.num_frames} "
-              f"frames) in {time.perf_counter() - t0:.1f} s")
+        print(
+            f"wrote {args.out} ({cfg.preset}: {cfg.num_cams + len(cfg.special_cameras)} cameras x {cfg.num_frames} "
+            f"frames) in {time.perf_counter() - t0:.1f} s"
+        )
 
     return run_reporting_errors(run)
 

@@ -96,8 +96,9 @@ class MotionEffect:
     def check(self) -> None:
         """Raise ValueError naming the first field out of range."""
         if self.mechanism not in ("spring", "hysteresis", "accumulator"):
-            raise ValueError(f"motion effect {self.name!r}: mechanism must be spring/hysteresis/accumulator, "
-                             f"got {self.mechanism!r}")
+            raise ValueError(
+                f"motion effect {self.name!r}: mechanism must be spring/hysteresis/accumulator, got {self.mechanism!r}"
+            )
         if self.signal not in ("height", "speed", "vertical_velocity", "vertical_acceleration"):
             raise ValueError(f"motion effect {self.name!r}: unknown signal {self.signal!r}")
         if self.effect not in ("darken", "tint", "dye", "band"):
@@ -105,14 +106,20 @@ class MotionEffect:
         if not self.joints:
             raise ValueError(f"motion effect {self.name!r}: joints must name at least one body part")
         if not (self.frequency_hz > 0 and 0 < self.damping < 1):
-            raise ValueError(f"motion effect {self.name!r}: need frequency_hz > 0 and 0 < damping < 1, got "
-                             f"{self.frequency_hz}, {self.damping}")
+            raise ValueError(
+                f"motion effect {self.name!r}: need frequency_hz > 0 and 0 < damping < 1, got "
+                f"{self.frequency_hz}, {self.damping}"
+            )
         if not 0 <= self.low_quantile < self.high_quantile <= 1:
-            raise ValueError(f"motion effect {self.name!r}: need 0 <= low_quantile < high_quantile <= 1, got "
-                             f"{self.low_quantile}, {self.high_quantile}")
+            raise ValueError(
+                f"motion effect {self.name!r}: need 0 <= low_quantile < high_quantile <= 1, got "
+                f"{self.low_quantile}, {self.high_quantile}"
+            )
         if not (self.time_constant_s > 0 and 0 < self.reference_quantile <= 1):
-            raise ValueError(f"motion effect {self.name!r}: need time_constant_s > 0 and reference_quantile in "
-                             f"(0, 1], got {self.time_constant_s}, {self.reference_quantile}")
+            raise ValueError(
+                f"motion effect {self.name!r}: need time_constant_s > 0 and reference_quantile in "
+                f"(0, 1], got {self.time_constant_s}, {self.reference_quantile}"
+            )
         if not self.y_range[0] < self.y_range[1]:
             raise ValueError(f"motion effect {self.name!r}: y_range must be increasing, got {self.y_range}")
 
@@ -124,8 +131,10 @@ def resolve_joint(name: str, joint_names: Sequence[str]) -> int:
     for cand in JOINT_ALIASES.get(name, ()) + (name,):
         if cand in names:
             return names.index(cand)
-    raise ValueError(f"body part {name!r} matches no rig joint (tried {JOINT_ALIASES.get(name, ()) + (name,)}; "
-                     f"the rig has {names[:8]}...)")
+    raise ValueError(
+        f"body part {name!r} matches no rig joint (tried {JOINT_ALIASES.get(name, ()) + (name,)}; "
+        f"the rig has {names[:8]}...)"
+    )
 
 
 def backward_diff(x: np.ndarray, fps: float) -> np.ndarray:
@@ -215,8 +224,15 @@ def hue_rotation(angle: float) -> np.ndarray:
     return (np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K).astype(np.float32)
 
 
-def apply_effect(flat: np.ndarray, idx: np.ndarray, weight: np.ndarray, y: np.ndarray, effect: MotionEffect,
-                 level: float, body_height: float) -> None:
+def apply_effect(
+    flat: np.ndarray,
+    idx: np.ndarray,
+    weight: np.ndarray,
+    y: np.ndarray,
+    effect: MotionEffect,
+    level: float,
+    body_height: float,
+) -> None:
     """Change the texels ``idx`` of ``flat`` [S*S, 3] in place by ``effect`` at ``level``.
 
     weight [n, 1] region membership in [0, 1]; y [n] texel heights as fractions of the body height.

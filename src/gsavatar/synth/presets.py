@@ -113,7 +113,8 @@ class SynthConfig:
             if "motion_effects" in app:
                 app["motion_effects"] = tuple(
                     MotionEffect(**{k: tuple(v) if isinstance(v, list) else v for k, v in e.items()})
-                    for e in app["motion_effects"])
+                    for e in app["motion_effects"]
+                )
             kw["appearance"] = AppearanceConfig(**app)
         for k in ("background", "special_cameras"):
             if k in kw:
@@ -124,54 +125,154 @@ class SynthConfig:
 _LIMBS = ("left_hand", "right_hand", "left_foot", "right_foot")
 SMALL_MOTION_EFFECTS = (
     # Sustained limb effort darkens the upper shirt (sweat) and fades within about a second.
-    MotionEffect("sweat", "accumulator", "speed", _LIMBS, "shirt", "darken", strength=0.5, y_range=(0.66, 0.86),
-                 time_constant_s=0.6, reference_quantile=0.7),
+    MotionEffect(
+        "sweat",
+        "accumulator",
+        "speed",
+        _LIMBS,
+        "shirt",
+        "darken",
+        strength=0.5,
+        y_range=(0.66, 0.86),
+        time_constant_s=0.6,
+        reference_quantile=0.7,
+    ),
     # The trousers' dye flips when the right hand rises high and stays until it drops low (a pushed-up sleeve).
-    MotionEffect("sleeve", "hysteresis", "height", ("right_hand",), "trousers", "dye", color=(1.5, 0.8, 0.55),
-                 low_quantile=0.25, high_quantile=0.75),
+    MotionEffect(
+        "sleeve",
+        "hysteresis",
+        "height",
+        ("right_hand",),
+        "trousers",
+        "dye",
+        color=(1.5, 0.8, 0.55),
+        low_quantile=0.25,
+        high_quantile=0.75,
+    ),
     # The shirt's hem swings after the pelvis moves up or down: a damped spring on its vertical acceleration.
-    MotionEffect("hem", "spring", "vertical_acceleration", ("pelvis",), "shirt", "tint", strength=1.2,
-                 relative_to=None, y_range=(0.56, 0.66), frequency_hz=1.5, damping=0.3),
+    MotionEffect(
+        "hem",
+        "spring",
+        "vertical_acceleration",
+        ("pelvis",),
+        "shirt",
+        "tint",
+        strength=1.2,
+        relative_to=None,
+        y_range=(0.56, 0.66),
+        frequency_hz=1.5,
+        damping=0.3,
+    ),
 )
 """The ``small`` capture's history-caused appearance (docs/synth.md)."""
 SECOND_MOTION_EFFECTS = (
-    MotionEffect("flush", "accumulator", "speed", _LIMBS, "shirt", "dye", color=(1.35, 0.8, 0.7),
-                 time_constant_s=0.5, reference_quantile=0.6),
+    MotionEffect(
+        "flush",
+        "accumulator",
+        "speed",
+        _LIMBS,
+        "shirt",
+        "dye",
+        color=(1.35, 0.8, 0.7),
+        time_constant_s=0.5,
+        reference_quantile=0.6,
+    ),
     # The trousers' dye flips on a fast knee move and stays until the leg is still (a cuff that rides up). The
     # round before it flipped on the pelvis' vertical velocity beyond its 10/90% quantiles: 3 flips in the 360
     # training frames, 5 in the 90 test frames, which no predictor can learn (docs/train.md).
-    MotionEffect("cuff", "hysteresis", "speed", ("left_knee",), "trousers", "dye", color=(0.7, 0.9, 1.5),
-                 low_quantile=0.25, high_quantile=0.75),
-    MotionEffect("swing", "spring", "vertical_acceleration", ("pelvis",), "shirt", "band", strength=0.05,
-                 color=(0.95, 0.92, 0.85), relative_to=None, y_range=(0.57, 0.65), frequency_hz=1.5, damping=0.4),
+    MotionEffect(
+        "cuff",
+        "hysteresis",
+        "speed",
+        ("left_knee",),
+        "trousers",
+        "dye",
+        color=(0.7, 0.9, 1.5),
+        low_quantile=0.25,
+        high_quantile=0.75,
+    ),
+    MotionEffect(
+        "swing",
+        "spring",
+        "vertical_acceleration",
+        ("pelvis",),
+        "shirt",
+        "band",
+        strength=0.05,
+        color=(0.95, 0.92, 0.85),
+        relative_to=None,
+        y_range=(0.57, 0.65),
+        frequency_hz=1.5,
+        damping=0.4,
+    ),
 )
 """The ``second`` capture's: other mechanisms' parameters, regions and effects, another motion and body."""
 _QUIET = dict(fold_strength=0.12, hair_hue_range=0.3)  # pose-independent changes kept, but small
 
 PRESETS: dict[str, SynthConfig] = {
     "tiny": SynthConfig(
-        preset="tiny", decimate_to=3000, num_cams=6, width=128, height=128, num_frames=12, fps=15.0,
-        bvh_start=1040, tex_size=256, test_fraction=0.25, test_cameras=1,
-        appearance=AppearanceConfig(fold_dwell_s=0.25, drift_period_s=2.0, face_period_s=0.8)),
-    "small": SynthConfig(preset="small", tex_size=512, test_cameras=2, num_frames=450, bvh_start=120,
-                         appearance=AppearanceConfig(motion_effects=SMALL_MOTION_EFFECTS, **_QUIET)),
-    "small_random": SynthConfig(preset="small_random", tex_size=512, test_cameras=2,
-                                appearance=AppearanceConfig(dye_garment="shirt", dye_states=3, dye_dwell_s=1.0)),
-    "second": SynthConfig(preset="second", seed=1, body_seed=3, tex_size=512, test_cameras=2, num_frames=450,
-                          bvh_path="/usr/share/assimp/models/BVH/01_03.bvh", bvh_start=1500,
-                          appearance=AppearanceConfig(motion_effects=SECOND_MOTION_EFFECTS, **_QUIET)),
+        preset="tiny",
+        decimate_to=3000,
+        num_cams=6,
+        width=128,
+        height=128,
+        num_frames=12,
+        fps=15.0,
+        bvh_start=1040,
+        tex_size=256,
+        test_fraction=0.25,
+        test_cameras=1,
+        appearance=AppearanceConfig(fold_dwell_s=0.25, drift_period_s=2.0, face_period_s=0.8),
+    ),
+    "small": SynthConfig(
+        preset="small",
+        tex_size=512,
+        test_cameras=2,
+        num_frames=450,
+        bvh_start=120,
+        appearance=AppearanceConfig(motion_effects=SMALL_MOTION_EFFECTS, **_QUIET),
+    ),
+    "small_random": SynthConfig(
+        preset="small_random",
+        tex_size=512,
+        test_cameras=2,
+        appearance=AppearanceConfig(dye_garment="shirt", dye_states=3, dye_dwell_s=1.0),
+    ),
+    "second": SynthConfig(
+        preset="second",
+        seed=1,
+        body_seed=3,
+        tex_size=512,
+        test_cameras=2,
+        num_frames=450,
+        bvh_path="/usr/share/assimp/models/BVH/01_03.bvh",
+        bvh_start=1500,
+        appearance=AppearanceConfig(motion_effects=SECOND_MOTION_EFFECTS, **_QUIET),
+    ),
     "hard": SynthConfig(
-        preset="hard", decimate_to=6000, num_cams=9, width=192, height=192, num_frames=24, fps=15.0,
-        bvh_start=1000, tex_size=512, test_cameras=1, special_cameras=("top", "floor", "away"),
-        occluded_camera="full02", corrupted_camera="upper01", corrupted_fraction=0.5,
-        appearance=AppearanceConfig(fold_dwell_s=0.5, drift_period_s=3.0)),
+        preset="hard",
+        decimate_to=6000,
+        num_cams=9,
+        width=192,
+        height=192,
+        num_frames=24,
+        fps=15.0,
+        bvh_start=1000,
+        tex_size=512,
+        test_cameras=1,
+        special_cameras=("top", "floor", "away"),
+        occluded_camera="full02",
+        corrupted_camera="upper01",
+        corrupted_fraction=0.5,
+        appearance=AppearanceConfig(fold_dwell_s=0.5, drift_period_s=3.0),
+    ),
 }
 
 
 PRESET_HELP: dict[str, str] = {
     "tiny": "unit-test capture: ~3k-vertex body, 6 cameras 128x128, 12 frames, 256^2 texture (seconds)",
     "small": "demo capture: full body, 12 cameras 256x256, 450 frames at 30 fps (90 test), 512^2 texture, appearance "
-             "caused by the motion's history (minutes)",
+    "caused by the motion's history (minutes)",
     "small_random": "the previous demo capture: 120 frames, appearance random in time (shirt dye switches)",
     "second": "a second capture: another body, CMU 01_03, other history-caused mechanisms (minutes)",
     "hard": "stress capture: sparse dome + grazing/away cameras, one occluded and one corrupted view",

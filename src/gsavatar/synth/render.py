@@ -74,13 +74,34 @@ def box_mesh(center: Sequence[float], size: Sequence[float], color=(0.5, 0.5, 0.
     """Axis-aligned box. center [3], size [3] (full extents), metres."""
     c, s = np.asarray(center, np.float32), np.asarray(size, np.float32) / 2
     V = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float32) * s + c
-    F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], np.int64)
+    F = np.array(
+        [
+            [0, 1, 3],
+            [0, 3, 2],
+            [4, 6, 7],
+            [4, 7, 5],
+            [0, 4, 5],
+            [0, 5, 1],
+            [2, 3, 7],
+            [2, 7, 6],
+            [0, 2, 6],
+            [0, 6, 4],
+            [1, 5, 7],
+            [1, 7, 3],
+        ],
+        np.int64,
+    )
     return TriMesh(V, F, tuple(map(float, color)))
 
 
-def pose_vertices(template: Template, rig: Rig, pose: np.ndarray, root_rotation: np.ndarray,
-                  root_translation: np.ndarray, chunk: int = 16) -> np.ndarray:
+def pose_vertices(
+    template: Template,
+    rig: Rig,
+    pose: np.ndarray,
+    root_rotation: np.ndarray,
+    root_translation: np.ndarray,
+    chunk: int = 16,
+) -> np.ndarray:
     """Posed world vertices by LBS. pose [B, P] rad, root_rotation [B, 3] axis-angle,
     root_translation [B, 3] m -> [B, V, 3] float32."""
     import torch
@@ -97,15 +118,19 @@ def pose_vertices(template: Template, rig: Rig, pose: np.ndarray, root_rotation:
     out = []
     with torch.no_grad():
         for i in range(0, len(pose), chunk):
-            T = skinning_transforms(rt, torch.as_tensor(pose[i:i + chunk]),
-                                    torch.as_tensor(np.asarray(root_rotation[i:i + chunk], np.float32)),
-                                    torch.as_tensor(np.asarray(root_translation[i:i + chunk], np.float32)))
+            T = skinning_transforms(
+                rt,
+                torch.as_tensor(pose[i : i + chunk]),
+                torch.as_tensor(np.asarray(root_rotation[i : i + chunk], np.float32)),
+                torch.as_tensor(np.asarray(root_translation[i : i + chunk], np.float32)),
+            )
             out.append(lbs(pts, idx, w, T).numpy())
     return np.concatenate(out, 0).astype(np.float32)
 
 
-def pose_joint_positions(rig: Rig, pose: np.ndarray, root_rotation: np.ndarray,
-                         root_translation: np.ndarray) -> np.ndarray:
+def pose_joint_positions(
+    rig: Rig, pose: np.ndarray, root_rotation: np.ndarray, root_translation: np.ndarray
+) -> np.ndarray:
     """Posed world joint positions by forward kinematics (float64 inside). pose [F, P] rad, root_rotation [F, 3]
     axis-angle, root_translation [F, 3] m -> [F, J, 3] float64, metres."""
     import torch
@@ -113,8 +138,9 @@ def pose_joint_positions(rig: Rig, pose: np.ndarray, root_rotation: np.ndarray,
     from gsavatar.geometry.lbs import pose_joints
 
     with torch.no_grad():
-        return pose_joints(rig, *(torch.as_tensor(np.asarray(a), dtype=torch.float64)
-                                  for a in (pose, root_rotation, root_translation))).numpy()
+        return pose_joints(
+            rig, *(torch.as_tensor(np.asarray(a), dtype=torch.float64) for a in (pose, root_rotation, root_translation))
+        ).numpy()
 
 
 def supersampled_rays(cam: Camera, supersample: int = 1) -> np.ndarray:
@@ -157,8 +183,14 @@ class FrameScene:
     vertices: posed world vertices [V, 3]; faces [F, 3]; corner_uvs [F, 3, 2] (OBJ v up).
     """
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, corner_uvs: np.ndarray,
-                 extras: Sequence[TriMesh] = (), nthreads: int = 0) -> None:
+    def __init__(
+        self,
+        vertices: np.ndarray,
+        faces: np.ndarray,
+        corner_uvs: np.ndarray,
+        extras: Sequence[TriMesh] = (),
+        nthreads: int = 0,
+    ) -> None:
         import open3d as o3d
 
         self.vertices = np.asarray(vertices, np.float32)
@@ -172,8 +204,9 @@ class FrameScene:
         self._scene = o3d.t.geometry.RaycastingScene(nthreads=nthreads)
         self._scene.add_triangles(o3d.core.Tensor(self.vertices), o3d.core.Tensor(self.faces.astype(np.uint32)))
         for m in self.extras:
-            self._scene.add_triangles(o3d.core.Tensor(np.asarray(m.vertices, np.float32)),
-                                      o3d.core.Tensor(np.asarray(m.faces, np.uint32)))
+            self._scene.add_triangles(
+                o3d.core.Tensor(np.asarray(m.vertices, np.float32)), o3d.core.Tensor(np.asarray(m.faces, np.uint32))
+            )
 
     def cast(self, rays: np.ndarray) -> Hits:
         """First hits of rays [N, 6] (origin, unit direction), world space."""
@@ -189,8 +222,9 @@ class FrameScene:
         bary = np.concatenate([1.0 - w12.sum(1, keepdims=True), w12], 1).astype(np.float32)
         return Hits(gid, pid, bary, ans["primitive_normals"].numpy(), ans["t_hit"].numpy())
 
-    def shade(self, rays: np.ndarray, texture: np.ndarray, shading: Shading | None,
-              background: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    def shade(
+        self, rays: np.ndarray, texture: np.ndarray, shading: Shading | None, background: Sequence[float]
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Colour and body coverage per ray. rays [N, 6] -> ([N, 3] float32, [N] float32)."""
         gid, pid, bary, gnorm, _ = self.cast(rays)
         n = len(rays)
@@ -214,8 +248,9 @@ class FrameScene:
         return color, body.astype(np.float32)
 
 
-def texel_visibility(scene: FrameScene, face_id: np.ndarray, bary: np.ndarray, cam: Camera,
-                     tol: float = 2e-3) -> np.ndarray:
+def texel_visibility(
+    scene: FrameScene, face_id: np.ndarray, bary: np.ndarray, cam: Camera, tol: float = 2e-3
+) -> np.ndarray:
     """Which surface points (e.g. texel centres) a camera sees: in front of it, inside the
     image (with distortion) and the first hit of the ray from the camera centre.
 
@@ -227,8 +262,13 @@ def texel_visibility(scene: FrameScene, face_id: np.ndarray, bary: np.ndarray, c
     p = np.einsum("nk,nkc->nc", bary.astype(np.float64), scene.vertices[scene.faces[face_id]].astype(np.float64))
     proj = project(p, cam.K, cam.R, cam.T, cam.dist)
     uv = proj.pixels
-    ok = (proj.depth > 1e-6) & (uv[:, 0] >= -0.5) & (uv[:, 0] < cam.width - 0.5) \
-        & (uv[:, 1] >= -0.5) & (uv[:, 1] < cam.height - 0.5)
+    ok = (
+        (proj.depth > 1e-6)
+        & (uv[:, 0] >= -0.5)
+        & (uv[:, 0] < cam.width - 0.5)
+        & (uv[:, 1] >= -0.5)
+        & (uv[:, 1] < cam.height - 0.5)
+    )
     c = cam.center
     d = p - c
     dist = np.linalg.norm(d, axis=1)
@@ -249,15 +289,24 @@ def _lambert(normals: np.ndarray, dirs: np.ndarray, shading: Shading) -> np.ndar
     return (shading.ambient + shading.diffuse * np.maximum(n @ l, 0.0)).astype(np.float32)
 
 
-def render_view(scene: FrameScene, cam: Camera, texture: np.ndarray, *, supersample: int = 2,
-                shading: Shading | None = Shading(), background: Sequence[float] = (0.0, 0.0, 0.0),
-                rays: np.ndarray | None = None) -> RenderOutput:
+def render_view(
+    scene: FrameScene,
+    cam: Camera,
+    texture: np.ndarray,
+    *,
+    supersample: int = 2,
+    shading: Shading | None = Shading(),
+    background: Sequence[float] = (0.0, 0.0, 0.0),
+    rays: np.ndarray | None = None,
+) -> RenderOutput:
     """Render one camera. texture [S, S, 3] float in [0, 1]; rays: cached :func:`supersampled_rays`."""
     s = int(supersample)
     if rays is None:
         rays = supersampled_rays(cam, s)
     if rays.shape != (cam.height * s, cam.width * s, 6):
-        raise ValueError(f"rays must be [{cam.height * s}, {cam.width * s}, 6] for camera {cam.name!r}, got {rays.shape}")
+        raise ValueError(
+            f"rays must be [{cam.height * s}, {cam.width * s}, 6] for camera {cam.name!r}, got {rays.shape}"
+        )
     color, cov = scene.shade(rays.reshape(-1, 6), texture, shading, background)
     H, W = cam.height, cam.width
     img = color.reshape(H, s, W, s, 3).mean((1, 3))
@@ -265,10 +314,20 @@ def render_view(scene: FrameScene, cam: Camera, texture: np.ndarray, *, supersam
     return RenderOutput(np.clip(img, 0, 1).astype(np.float32), mask.astype(np.float32))
 
 
-def render_views(vertices: np.ndarray, faces: np.ndarray, corner_uvs: np.ndarray, texture: np.ndarray,
-                 cameras: Mapping[str, Camera], *, supersample: int = 2, shading: Shading | None = Shading(),
-                 background: Sequence[float] = (0.0, 0.0, 0.0), occluders: Mapping[str, Sequence[TriMesh]] | None = None,
-                 rays: Mapping[str, np.ndarray] | None = None, nthreads: int = 0) -> dict[str, RenderOutput]:
+def render_views(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    corner_uvs: np.ndarray,
+    texture: np.ndarray,
+    cameras: Mapping[str, Camera],
+    *,
+    supersample: int = 2,
+    shading: Shading | None = Shading(),
+    background: Sequence[float] = (0.0, 0.0, 0.0),
+    occluders: Mapping[str, Sequence[TriMesh]] | None = None,
+    rays: Mapping[str, np.ndarray] | None = None,
+    nthreads: int = 0,
+) -> dict[str, RenderOutput]:
     """Render one posed frame in every camera.
 
     vertices [V, 3] posed world; faces [F, 3]; corner_uvs [F, 3, 2]; texture [S, S, 3].
@@ -282,6 +341,13 @@ def render_views(vertices: np.ndarray, faces: np.ndarray, corner_uvs: np.ndarray
         sc = scene
         if occluders.get(name):
             sc = FrameScene(vertices, faces, corner_uvs, extras=occluders[name], nthreads=nthreads)
-        out[name] = render_view(sc, cam, texture, supersample=supersample, shading=shading, background=background,
-                                rays=None if rays is None else rays.get(name))
+        out[name] = render_view(
+            sc,
+            cam,
+            texture,
+            supersample=supersample,
+            shading=shading,
+            background=background,
+            rays=None if rays is None else rays.get(name),
+        )
     return out

@@ -1,11 +1,11 @@
 """``avatar-train``: train the Gaussian avatar (and, later, the appearance predictor).
 
-    avatar-train avatar --dataset ds --out runs/tiny --preset tiny
-    avatar-train avatar --dataset ds --out runs/mmlps --variant mmlps_dagger     # the baseline
-    avatar-train eval --run runs/tiny
-    avatar-train export --run runs/tiny --frame 0 --out frame0.ply --up-axis -y   # -y: 3DGS viewers
-    avatar-train view --run runs/tiny               # the avatar at rest in the browser viewer
-    avatar-train predictor --run runs/tiny          # the autoregressive appearance predictor
+avatar-train avatar --dataset ds --out runs/tiny --preset tiny
+avatar-train avatar --dataset ds --out runs/mmlps --variant mmlps_dagger     # the baseline
+avatar-train eval --run runs/tiny
+avatar-train export --run runs/tiny --frame 0 --out frame0.ply --up-axis -y   # -y: 3DGS viewers
+avatar-train view --run runs/tiny               # the avatar at rest in the browser viewer
+avatar-train predictor --run runs/tiny          # the autoregressive appearance predictor
 """
 
 from __future__ import annotations
@@ -117,8 +117,17 @@ class View:
         import subprocess
         import sys
 
-        cmd = [sys.executable, "-m", "gsavatar.drive.viewer", "--run", str(self.run), "--port", str(self.port),
-               "--host", self.host]
+        cmd = [
+            sys.executable,
+            "-m",
+            "gsavatar.drive.viewer",
+            "--run",
+            str(self.run),
+            "--port",
+            str(self.port),
+            "--host",
+            self.host,
+        ]
         cmd += ["--motion", str(self.motion)] if self.motion is not None else []
         cmd += ["--start-paused"] * self.start_paused + ["--sh0-only"] * self.sh0_only
         rc = subprocess.call(cmd)
@@ -154,9 +163,19 @@ class Turntable:
 
 
 def main(argv: list[str] | None = None) -> int:
-    cmd = tyro.extras.subcommand_cli_from_dict({"avatar": Avatar, "eval": Eval, "export": Export, "turntable": Turntable, "predictor": Predictor,
-                                                "view": View},
-                                               prog="avatar-train", description=__doc__, args=argv)
+    cmd = tyro.extras.subcommand_cli_from_dict(
+        {
+            "avatar": Avatar,
+            "eval": Eval,
+            "export": Export,
+            "turntable": Turntable,
+            "predictor": Predictor,
+            "view": View,
+        },
+        prog="avatar-train",
+        description=__doc__,
+        args=argv,
+    )
     try:
         return run_reporting_errors(cmd.run if isinstance(cmd, Avatar) else cmd.run_)
     finally:

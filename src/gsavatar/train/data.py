@@ -19,9 +19,17 @@ from gsavatar.data_schema.views import UndistortMaps, load_view, scaled_camera
 class ViewDataset(Dataset):
     """(frame, camera) samples of one split. Items are dicts of tensors (see :meth:`__getitem__`)."""
 
-    def __init__(self, scene: PreparedScene, split: str = "train", cameras: list[str] | None = None,
-                 frames: list[int] | None = None, image_scale: float = 1.0, with_texture: bool = True,
-                 texture_source: str = "projected", cache_bytes: int = 0) -> None:
+    def __init__(
+        self,
+        scene: PreparedScene,
+        split: str = "train",
+        cameras: list[str] | None = None,
+        frames: list[int] | None = None,
+        image_scale: float = 1.0,
+        with_texture: bool = True,
+        texture_source: str = "projected",
+        cache_bytes: int = 0,
+    ) -> None:
         cap = scene.capture
         if split not in cap.splits:
             raise ValueError(f"split must be one of {sorted(cap.splits)}, got {split!r}")
@@ -92,10 +100,18 @@ class ViewDataset(Dataset):
         frame, cam = self.items[i]
         c = self.scene.capture
         geo = self.geo[cam]
-        both = self._cache_get(("view", frame, cam), lambda: np.concatenate(
-            [a.reshape(geo.height, geo.width, -1) for a in
-             load_view(c.cameras[cam], c.image_path(cam, frame), c.mask_path(cam, frame), geo, self._undistort)],
-            axis=2))
+        both = self._cache_get(
+            ("view", frame, cam),
+            lambda: np.concatenate(
+                [
+                    a.reshape(geo.height, geo.width, -1)
+                    for a in load_view(
+                        c.cameras[cam], c.image_path(cam, frame), c.mask_path(cam, frame), geo, self._undistort
+                    )
+                ],
+                axis=2,
+            ),
+        )
         img, msk = both[..., :3], both[..., 3]
         return {
             **self.frame_inputs(frame),

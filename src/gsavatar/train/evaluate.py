@@ -24,9 +24,18 @@ def select_frames(frames: list[int], n: int) -> list[int]:
 
 
 @torch.no_grad()
-def evaluate_views(net: AvatarNet, data: ViewDataset, device: torch.device, sh_degree: int, backend: str = "auto",
-                   lpips=None, latents_fn=None, save_dir: Path | None = None, max_images: int = 4,
-                   ag_lpips: dict | None = None) -> dict:
+def evaluate_views(
+    net: AvatarNet,
+    data: ViewDataset,
+    device: torch.device,
+    sh_degree: int,
+    backend: str = "auto",
+    lpips=None,
+    latents_fn=None,
+    save_dir: Path | None = None,
+    max_images: int = 4,
+    ag_lpips: dict | None = None,
+) -> dict:
     """Render every (frame, camera) of ``data`` on a black background and score it.
 
     ``latents_fn(frame) -> [A, L]`` overrides the encoder (e.g. the appearance predictor).
@@ -56,8 +65,9 @@ def evaluate_views(net: AvatarNet, data: ViewDataset, device: torch.device, sh_d
         pred, alpha = render_views(out.avatar, b["viewmat"], b["K"], W, H, bg, sh_degree, backend)
         pred = pred.clamp(0, 1)
         gt = b["image"] * b["mask"]
-        for k, v in ag_scores(on_white(pred[0], alpha[0]).clamp(0, 1), on_white(gt[0], b["mask"][0]), b["mask"][0],
-                              ag_lpips).items():
+        for k, v in ag_scores(
+            on_white(pred[0], alpha[0]).clamp(0, 1), on_white(gt[0], b["mask"][0]), b["mask"][0], ag_lpips
+        ).items():
             rows.setdefault(f"ag_{k}", []).append(v)
         rows["psnr"].append(float(psnr(pred, gt)[0]))
         rows["psnr_fg"].append(float(psnr(pred, gt, mask=(b["mask"] > 0.5).expand_as(gt))[0]))
@@ -72,4 +82,6 @@ def evaluate_views(net: AvatarNet, data: ViewDataset, device: torch.device, sh_d
             write_image(output_path(save_dir, f"eval_{frame:08d}_{cam}.png"), panel)
             saved += 1
     # nanmean: a view whose eroded mask is empty (tiny images) has no interior PSNR
-    return {k: float(np.nanmean(v)) if np.isfinite(v).any() else float("nan") for k, v in rows.items()} | {"views": len(data)}
+    return {k: float(np.nanmean(v)) if np.isfinite(v).any() else float("nan") for k, v in rows.items()} | {
+        "views": len(data)
+    }

@@ -107,8 +107,9 @@ def predictor_dir(run: Path, out: Path | None = None) -> Path:
 
 
 @torch.no_grad()
-def extract_targets(run: Path, out: Path | None = None, device: str = "auto", batch_size: int = 8,
-                    loaded: LoadedRun | None = None) -> TargetLatents:
+def extract_targets(
+    run: Path, out: Path | None = None, device: str = "auto", batch_size: int = 8, loaded: LoadedRun | None = None
+) -> TargetLatents:
     """Encoder latents of every textured frame, cached (keyed on the run's checkpoint step).
 
     ``loaded``: ``load_run(run)``'s result, to avoid reloading. -> TargetLatents
@@ -125,8 +126,14 @@ def extract_targets(run: Path, out: Path | None = None, device: str = "auto", ba
             hdr = parse_json_text(str(z["header"]), path)
         except (SchemaError, KeyError):
             z, hdr = {}, None  # unreadable cache: extract again and overwrite it
-        if (isinstance(hdr, dict) and hdr.get("format") == TARGETS_FORMAT and hdr.get("step") == step
-                and "latents" in z and "frames" in z and np.array_equal(z["frames"], frames)):
+        if (
+            isinstance(hdr, dict)
+            and hdr.get("format") == TARGETS_FORMAT
+            and hdr.get("step") == step
+            and "latents" in z
+            and "frames" in z
+            and np.array_equal(z["frames"], frames)
+        ):
             return TargetLatents(z["latents"], z["frames"])
     dev = next(net.parameters()).device
     out_lat = []
@@ -144,8 +151,13 @@ def sequence_data(motion, targets: TargetLatents, device: torch.device | str = "
     """Rows of ``targets`` with the capture's motion (``capture.motion``)."""
     f = torch.as_tensor(targets.frames, dtype=torch.long)
     t = lambda a: torch.as_tensor(np.asarray(a)[targets.frames], dtype=torch.float32, device=device)  # noqa: E731
-    return SequenceData(f.to(device), t(motion.pose), t(motion.root_rotation), t(motion.root_translation),
-                        torch.as_tensor(targets.latents, dtype=torch.float32, device=device))
+    return SequenceData(
+        f.to(device),
+        t(motion.pose),
+        t(motion.root_rotation),
+        t(motion.root_translation),
+        torch.as_tensor(targets.latents, dtype=torch.float32, device=device),
+    )
 
 
 def split_segments(frames: Tensor | np.ndarray, split_frames) -> list[tuple[int, int]]:
@@ -194,8 +206,14 @@ class WindowSampler:
 
 
 # ----------------------------------------------------------------------------- losses
-def unroll(model: AppearancePredictor, data: SequenceData, rows: Tensor, seg_start: Tensor, ctx0: Tensor,
-           detach_feedback: bool = False) -> Tensor:
+def unroll(
+    model: AppearancePredictor,
+    data: SequenceData,
+    rows: Tensor,
+    seg_start: Tensor,
+    ctx0: Tensor,
+    detach_feedback: bool = False,
+) -> Tensor:
     """Autoregressive unroll over windows, feeding back the predictions.
 
     rows [B, T], seg_start [B], ctx0 [B, A, L] (previous latents of the first frame) -> [B, T, A, L]
@@ -224,20 +242,25 @@ def temporal_l1_terms(pred: Tensor, target: Tensor) -> dict[str, Tensor]:
     return terms
 
 
-def dual_context_loss(model: AppearancePredictor, data: SequenceData, rows: Tensor, seg_start: Tensor,
-                      detach_feedback: bool = False) -> DualLoss:
+def dual_context_loss(
+    model: AppearancePredictor, data: SequenceData, rows: Tensor, seg_start: Tensor, detach_feedback: bool = False
+) -> DualLoss:
     """Unrolled losses of the GT-context and zero-context passes (one doubled batch), summed."""
     B = rows.shape[0]
     dev = data.latents.device
     rows = rows.to(dev)
     gt_prev = data.latents[rows[:, 0] - 1]  # [B, A, L]
     zero = model.zero_latents().to(gt_prev).expand_as(gt_prev)
-    pred = unroll(model, data, rows.repeat(2, 1), seg_start.repeat(2), torch.cat([gt_prev, zero]),
-                  detach_feedback)  # [2B, T, A, L]
+    pred = unroll(
+        model, data, rows.repeat(2, 1), seg_start.repeat(2), torch.cat([gt_prev, zero]), detach_feedback
+    )  # [2B, T, A, L]
     target = data.latents[rows]  # [B, T, A, L]
     tg, tz = temporal_l1_terms(pred[:B], target), temporal_l1_terms(pred[B:], target)
     gt, zero = sum(tg.values()), sum(tz.values())
-    logs = {**{f"gt_{k}": float(v.detach()) for k, v in tg.items()}, **{f"zero_{k}": float(v.detach()) for k, v in tz.items()}}
+    logs = {
+        **{f"gt_{k}": float(v.detach()) for k, v in tg.items()},
+        **{f"zero_{k}": float(v.detach()) for k, v in tz.items()},
+    }
     return DualLoss(gt + zero, gt, zero, logs)
 
 
@@ -250,29 +273,37 @@ def initial_loss(model: AppearancePredictor, data: SequenceData, rows: Tensor) -
 
 
 # ----------------------------------------------------------------------------- model setup
-def build_predictor(scene, config: PredictorConfig, latent_dim: int, avatar_pca: str = "local",
-                    seed: int = 0) -> AppearancePredictor:
+def build_predictor(
+    scene, config: PredictorConfig, latent_dim: int, avatar_pca: str = "local", seed: int = 0
+) -> AppearancePredictor:
     """Predictor for a prepared scene: tokens for the slots active at >= 1 anchor, the avatar's pose PCA."""
     slots = np.flatnonzero(np.asarray(scene.masks.pose, bool).any(0))
     pca = {"local": scene.pca_local, "global": scene.pca_global, "global_test_only": scene.pca_global}.get(avatar_pca)
     pose_pca = None if pca is None else (pca.mean, pca.basis, pca.clamp_sigma * pca.sigma)
-    cfg = dataclasses.replace(config, latent_dim=int(latent_dim),
-                              latent_pca_components=config.latent_pca_components if config.latent_pca == "global"
-                              else min(config.latent_pca_components, int(latent_dim)))
+    cfg = dataclasses.replace(
+        config,
+        latent_dim=int(latent_dim),
+        latent_pca_components=config.latent_pca_components
+        if config.latent_pca == "global"
+        else min(config.latent_pca_components, int(latent_dim)),
+    )
     kin = KinematicChain.from_rig(scene.capture.rig) if cfg.joint_tokens else None
-    return AppearancePredictor(cfg, scene.hierarchy.num_anchors, slots, scene.capture.rig.pose_dim, pose_pca, seed,
-                               kinematics=kin)
+    return AppearancePredictor(
+        cfg, scene.hierarchy.num_anchors, slots, scene.capture.rig.pose_dim, pose_pca, seed, kinematics=kin
+    )
 
 
 @torch.no_grad()
-def prepare_model(model: AppearancePredictor, data: SequenceData, segments: list[tuple[int, int]],
-                  chunk: int = 512) -> dict:
+def prepare_model(
+    model: AppearancePredictor, data: SequenceData, segments: list[tuple[int, int]], chunk: int = 512
+) -> dict:
     """Fit the input normalisation (all train frames' windows) and the latent PCA (train targets)."""
     rows = torch.cat([torch.arange(s, e) for s, e in segments]).to(data.pose.device)
     starts = torch.cat([torch.full((e - s,), s) for s, e in segments]).to(data.pose.device)
     hist = history_index(rows, starts, model.config.history)  # [n, N_b]
-    parts = [model.input_features(data.pose[h], data.root_rotation[h], data.root_translation[h])
-             for h in hist.split(chunk)]
+    parts = [
+        model.input_features(data.pose[h], data.root_rotation[h], data.root_translation[h]) for h in hist.split(chunk)
+    ]
     joints = torch.cat([p[1] for p in parts]) if model.chain is not None else None
     model.fit_input_normalization(torch.cat([p[0] for p in parts]), joints)
     model.fit_latent_statistics(data.latents[rows])
@@ -302,8 +333,10 @@ def evaluate_predictor(model: AppearancePredictor, data: SequenceData, segments:
             continue
         P, R, Tr, gt = (x[s:e] for x in (data.pose, data.root_rotation, data.root_translation, data.latents))
         zeros = model.zero_latents().to(gt)
-        runs = {"teacher_first": model.rollout(P, R, Tr, gt[0], first_is_given=True),
-                "zero_init": model.rollout(P, R, Tr, zeros)}
+        runs = {
+            "teacher_first": model.rollout(P, R, Tr, gt[0], first_is_given=True),
+            "zero_init": model.rollout(P, R, Tr, zeros),
+        }
         if use_init:
             runs["initial_net_init"] = model.rollout(P, R, Tr, None)
         rows = torch.arange(s + 1, e, device=gt.device)[:, None]
@@ -332,28 +365,52 @@ class PredictorTrainer:
     delete ``latest.pt`` to retrain on the new latents.
     """
 
-    def __init__(self, model: AppearancePredictor, data: SequenceData, train_segments: list[tuple[int, int]],
-                 cfg: PredictorTrainConfig, out: Path, extra_config: dict | None = None) -> None:
+    def __init__(
+        self,
+        model: AppearancePredictor,
+        data: SequenceData,
+        train_segments: list[tuple[int, int]],
+        cfg: PredictorTrainConfig,
+        out: Path,
+        extra_config: dict | None = None,
+    ) -> None:
         self.model, self.data, self.cfg, self.out = model, data, cfg, Path(out)
         self.sampler = WindowSampler(train_segments, cfg.window)
         self.train_rows = torch.cat([torch.arange(s, e) for s, e in train_segments])
         self.optim = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
         train = config_to_json(cfg, exclude=("model",))
-        self.config = {"train": train, "model": model.config.to_json(), "pose_dim": model.pose_dim,
-                       "num_anchors": model.num_anchors, **(extra_config or {})}
+        self.config = {
+            "train": train,
+            "model": model.config.to_json(),
+            "pose_dim": model.pose_dim,
+            "num_anchors": model.num_anchors,
+            **(extra_config or {}),
+        }
         self.ckpt = self.out / "latest.pt"
         self.step = 0
         if self.ckpt.exists():
-            state = load_checkpoint(self.ckpt, self.config, strict_config_keys=(
-                "model", "num_anchors", "pose_dim", "targets_step", "train.seed", "train.batch_size", "train.window"),
-                defaults={"model": {**dataclass_defaults(PredictorConfig), **LEGACY_CONFIG}})
+            state = load_checkpoint(
+                self.ckpt,
+                self.config,
+                strict_config_keys=(
+                    "model",
+                    "num_anchors",
+                    "pose_dim",
+                    "targets_step",
+                    "train.seed",
+                    "train.batch_size",
+                    "train.window",
+                ),
+                defaults={"model": {**dataclass_defaults(PredictorConfig), **LEGACY_CONFIG}},
+            )
             model.load_state_dict(state["modules"]["predictor"])
             self.optim.load_state_dict(state["optimizer"])
             self.step = int(state["step"])
 
     def save(self) -> None:
-        save_checkpoint(self.ckpt, step=self.step, config=self.config, modules={"predictor": self.model},
-                        optimizer=self.optim)
+        save_checkpoint(
+            self.ckpt, step=self.step, config=self.config, modules={"predictor": self.model}, optimizer=self.optim
+        )
         set_resume_hint(resume_hint(self.ckpt, self.step))
 
     def loss(self, step: int) -> tuple[Tensor, dict[str, float]]:
@@ -362,7 +419,9 @@ class PredictorTrainer:
         d = dual_context_loss(self.model, self.data, rows, seg, self.cfg.detach_feedback)
         total, logs = d.total, {**d.logs, "gt": float(d.gt.detach()), "zero": float(d.zero.detach())}
         if self.model.initial is not None and self.cfg.initial_weight > 0:
-            irows = self.train_rows[torch.randint(len(self.train_rows), (self.cfg.batch_size * self.sampler.T,), generator=g)]
+            irows = self.train_rows[
+                torch.randint(len(self.train_rows), (self.cfg.batch_size * self.sampler.T,), generator=g)
+            ]
             il = initial_loss(self.model, self.data, irows)
             total = total + self.cfg.initial_weight * il
             logs["initial_l1"] = float(il.detach())
@@ -388,16 +447,25 @@ class PredictorTrainer:
                 rate = (self.step - n0) / (time.perf_counter() - t0)
                 with open(self.out / "metrics.jsonl", "a") as f:
                     f.write(json.dumps({"step": self.step, **{k: round(v, 6) for k, v in logs.items()}}) + "\n")
-                print(f"[predictor] step {self.step}/{cfg.steps} loss {logs['total']:.4f} gt_l1 {logs['gt_l1']:.4f} "
-                      f"zero_l1 {logs['zero_l1']:.4f} ({rate:.2f} steps/s)", flush=True)
+                print(
+                    f"[predictor] step {self.step}/{cfg.steps} loss {logs['total']:.4f} gt_l1 {logs['gt_l1']:.4f} "
+                    f"zero_l1 {logs['zero_l1']:.4f} ({rate:.2f} steps/s)",
+                    flush=True,
+                )
             if self.step % cfg.checkpoint_every == 0 or self.step == stop:
                 self.save()
         self.model.eval()
         return {"step": self.step, **logs, "seconds": time.perf_counter() - t0}
 
 
-def train_predictor(run: Path, cfg: PredictorTrainConfig, out: Path | None = None, device: str = "auto",
-                    evaluate: bool = True, force_out: bool = False) -> dict:
+def train_predictor(
+    run: Path,
+    cfg: PredictorTrainConfig,
+    out: Path | None = None,
+    device: str = "auto",
+    evaluate: bool = True,
+    force_out: bool = False,
+) -> dict:
     """Targets -> model -> train (resumes) -> evaluate on the train and test segments (``eval.json``).
 
     ``force_out``: accept a non-empty ``out`` that is not a gsavatar predictor output (refused otherwise)."""
@@ -412,10 +480,15 @@ def train_predictor(run: Path, cfg: PredictorTrainConfig, out: Path | None = Non
     train_segs = split_segments(data.frames, splits["train"].frames)
     model = build_predictor(scene, cfg.model, targets.latents.shape[-1], net.avatar.config.pca, cfg.seed).to(dev)
     info = prepare_model(model, data, train_segs)
-    print(f"[predictor] {info['train_frames']} train frames in {len(train_segs)} segments, latent PCA keeps "
-          f"{100 * info['latent_pca_explained_variance']:.1f}% of the variance", flush=True)
+    print(
+        f"[predictor] {info['train_frames']} train frames in {len(train_segs)} segments, latent PCA keeps "
+        f"{100 * info['latent_pca_explained_variance']:.1f}% of the variance",
+        flush=True,
+    )
     del net
-    trainer = PredictorTrainer(model, data, train_segs, cfg, d, {"run": str(Path(run).resolve()), "targets_step": loaded.step})
+    trainer = PredictorTrainer(
+        model, data, train_segs, cfg, d, {"run": str(Path(run).resolve()), "targets_step": loaded.step}
+    )
     summary = trainer.train()
     if not evaluate or trainer.step < cfg.steps:
         return summary

@@ -1,7 +1,7 @@
 """``avatar-train predictor``: train the autoregressive appearance predictor of an avatar run.
 
-    avatar-train predictor --run runs/small                     # RUN/predictor/{targets.npz,latest.pt,eval.json}
-    avatar-train predictor --run runs/small --steps 500 --window 8 --model.history 10
+avatar-train predictor --run runs/small                     # RUN/predictor/{targets.npz,latest.pt,eval.json}
+avatar-train predictor --run runs/small --steps 500 --window 8 --model.history 10
 """
 
 from __future__ import annotations

@@ -57,10 +57,18 @@ def evaluate_run(run: Path, eval_frames: int = 8, loaded: LoadedRun | None = Non
     if "test" in splits:
         sets["test_frames_heldout_cams"] = (select_frames(splits["test"].frames, eval_frames), test_cams)
     for name, (frames, cams) in sets.items():
-        data = ViewDataset(scene, "train", cameras=cams, frames=frames, image_scale=cfg.image_scale,
-                           with_texture=net.encoder is not None, texture_source=cfg.texture_source)
-        results[name] = evaluate_views(net, data, dev, sh, cfg.backend, lpips=lp.net, save_dir=run / "eval" / name,
-                                       ag_lpips=ag_nets)
+        data = ViewDataset(
+            scene,
+            "train",
+            cameras=cams,
+            frames=frames,
+            image_scale=cfg.image_scale,
+            with_texture=net.encoder is not None,
+            texture_source=cfg.texture_source,
+        )
+        results[name] = evaluate_views(
+            net, data, dev, sh, cfg.backend, lpips=lp.net, save_dir=run / "eval" / name, ag_lpips=ag_nets
+        )
     if net.encoder is not None and "test" in splits:
         # How much the appearance latent buys: the same held-out views with every frame's latents replaced by
         # the training frames' mean latent. ~0 dB means the avatar ignores its latents.
@@ -95,8 +103,14 @@ def run_frame_dependence(net: AvatarNet, scene, texture_source: str = "projected
         return None
     dev = next(net.parameters()).device
     net.eval()
-    data = ViewDataset(scene, "train", cameras=scene.capture.splits["train"].cameras[:1], frames=frames,
-                       with_texture=net.encoder is not None, texture_source=texture_source)
+    data = ViewDataset(
+        scene,
+        "train",
+        cameras=scene.capture.splits["train"].cameras[:1],
+        frames=frames,
+        with_texture=net.encoder is not None,
+        texture_source=texture_source,
+    )
     uv_t = torch.from_numpy(np.asarray(uv)).float()
     pred, gt = [], []
     for f in frames:
@@ -106,14 +120,21 @@ def run_frame_dependence(net: AvatarNet, scene, texture_source: str = "projected
         tex = torch.from_numpy(data.gt_texture(f)).permute(2, 0, 1)[None]  # [1, 3, S, S]
         gt.append(sample_at_uv(tex, uv_t)[0])  # [G, 3]
     gt_t = torch.stack(gt)
-    outside_face = (gt_t.abs().amax(dim=(0, 2)) > 0).double()  # the face (blanked, explained by the face input) is left out
+    outside_face = (
+        gt_t.abs().amax(dim=(0, 2)) > 0
+    ).double()  # the face (blanked, explained by the face input) is left out
     return frame_dependence(torch.stack(pred), gt_t, outside_face) | {"frames": len(frames)}
 
 
 @torch.no_grad()
 def posed_output(net: AvatarNet, scene, frame: int, sh_degree: int):
-    data = ViewDataset(scene, "train", cameras=scene.capture.splits["train"].cameras[:1], frames=[frame],
-                       with_texture=net.encoder is not None)
+    data = ViewDataset(
+        scene,
+        "train",
+        cameras=scene.capture.splits["train"].cameras[:1],
+        frames=[frame],
+        with_texture=net.encoder is not None,
+    )
     b = {k: (v[None] if torch.is_tensor(v) else v) for k, v in data.frame_inputs(frame).items()}
     dev = next(net.parameters()).device
     b = {k: v.to(dev) for k, v in b.items()}
@@ -130,7 +151,9 @@ def export_ply(run: Path, frame: int, out: Path) -> None:
 
 
 @torch.no_grad()
-def render_turntable(run: Path, out_mp4: Path, frame: int = 0, n_views: int = 48, size: int = 256, fps: int = 24) -> Path:
+def render_turntable(
+    run: Path, out_mp4: Path, frame: int = 0, n_views: int = 48, size: int = 256, fps: int = 24
+) -> Path:
     """Orbit around the posed avatar of ``frame`` and write an mp4 (imageio-ffmpeg)."""
     import imageio.v2 as imageio
 

@@ -27,7 +27,9 @@ def global_batch(n: int, batch_size: int, seed: int, step: int) -> list[int]:
 class StepBatchSampler(Sampler[list[int]]):
     """Yields this rank's slice of every step's global batch, from ``start_step`` to ``steps``."""
 
-    def __init__(self, n: int, batch_size: int, seed: int, start_step: int, steps: int, rank: int = 0, world: int = 1) -> None:
+    def __init__(
+        self, n: int, batch_size: int, seed: int, start_step: int, steps: int, rank: int = 0, world: int = 1
+    ) -> None:
         if batch_size % world:
             raise ValueError(f"batch_size ({batch_size}) must be divisible by the number of ranks ({world})")
         self.n, self.batch_size, self.seed = n, batch_size, seed

@@ -77,14 +77,22 @@ class Trainer:
             groups += self.net.encoder.param_groups(lrs)
         # fused: one kernel per parameter instead of ~10 passes over the ~15M basis scalars (55 -> 10 ms per
         # step on one CPU thread); the same update up to rounding.
-        self.optim = torch.optim.AdamW(groups, eps=1e-15, betas=(0.9, 0.999),
-                                       fused=self.device.type in ("cpu", "cuda"))
+        self.optim = torch.optim.AdamW(groups, eps=1e-15, betas=(0.9, 0.999), fused=self.device.type in ("cpu", "cuda"))
         # the loss: --lpips auto = on when training on CUDA (TrainConfig.lpips); none with a zero weight
-        self.lpips = load_lpips(self.cfg.lpips if self.cfg.losses.lpips > 0 else "off", self.device,
-                                self.cfg.lpips_weights, auto_on=self.device.type == "cuda").net
-        self.data = ViewDataset(self.scene, "train", image_scale=self.cfg.image_scale, with_texture=self.mcfg.use_latent,
-                                texture_source=self.cfg.texture_source,
-                                cache_bytes=int(self.cfg.cache_max_gb * 2**30) if self.cfg.cache_views else 0)
+        self.lpips = load_lpips(
+            self.cfg.lpips if self.cfg.losses.lpips > 0 else "off",
+            self.device,
+            self.cfg.lpips_weights,
+            auto_on=self.device.type == "cuda",
+        ).net
+        self.data = ViewDataset(
+            self.scene,
+            "train",
+            image_scale=self.cfg.image_scale,
+            with_texture=self.mcfg.use_latent,
+            texture_source=self.cfg.texture_source,
+            cache_bytes=int(self.cfg.cache_max_gb * 2**30) if self.cfg.cache_views else 0,
+        )
         self.neighbors = torch.from_numpy(self.scene.hierarchy.ctrl_neighbors).to(self.device)
         self.step = 0
         self.ckpt = self.out / "checkpoints" / "latest.pt"
@@ -98,8 +106,12 @@ class Trainer:
     def _resume(self) -> None:
         # The dataset is identified by content (stage configs + file checksums), not by how its path was spelt;
         # checkpoints written before ``dataset_id`` existed are compared by resolved path.
-        state = load_checkpoint(self.ckpt, self.config_json(), strict_config_keys=("model", "train.seed", "train.batch_size"),
-                                defaults={"model": dataclass_defaults(ModelConfig)})
+        state = load_checkpoint(
+            self.ckpt,
+            self.config_json(),
+            strict_config_keys=("model", "train.seed", "train.batch_size"),
+            defaults={"model": dataclass_defaults(ModelConfig)},
+        )
         check_same_dataset(self.ckpt, state["config"], Path(self.cfg.dataset), self.dataset_id)
         self.net.load_state_dict(state["modules"]["net"])
         self.optim.load_state_dict(state["optimizer"])
@@ -110,8 +122,9 @@ class Trainer:
     def save(self) -> None:
         if self.rank != 0:
             return
-        save_checkpoint(self.ckpt, step=self.step, config=self.config_json(), modules={"net": self.net},
-                        optimizer=self.optim)
+        save_checkpoint(
+            self.ckpt, step=self.step, config=self.config_json(), modules={"net": self.net}, optimizer=self.optim
+        )
         set_resume_hint(resume_hint(self.ckpt, self.step))
 
     # ------------------------------------------------------------------ one step
@@ -160,10 +173,13 @@ class Trainer:
 
     def train(self) -> dict:
         cfg = self.cfg
-        sampler = StepBatchSampler(len(self.data), cfg.batch_size, cfg.seed, self.step, cfg.steps, self.rank, self.world)
+        sampler = StepBatchSampler(
+            len(self.data), cfg.batch_size, cfg.seed, self.step, cfg.steps, self.rank, self.world
+        )
         positions = sampler.positions()
-        loader = DataLoader(self.data, batch_sampler=sampler, num_workers=cfg.num_workers,
-                            persistent_workers=cfg.num_workers > 0)
+        loader = DataLoader(
+            self.data, batch_sampler=sampler, num_workers=cfg.num_workers, persistent_workers=cfg.num_workers > 0
+        )
         if self.rank == 0:
             self.out.mkdir(parents=True, exist_ok=True)
             atomic_write_json(self.out / "config.json", self.config_json())
@@ -194,8 +210,11 @@ class Trainer:
                 line = {"step": self.step, **{k: round(v, 6) for k, v in logs.items()}, "steps_per_s": round(rate, 3)}
                 with open(log_path, "a") as f:
                     f.write(json.dumps(line) + "\n")
-                print(f"[train] step {self.step}/{cfg.steps} loss {logs['total']:.4f} l1 {logs['l1']:.4f} "
-                      f"({rate:.2f} steps/s)", flush=True)
+                print(
+                    f"[train] step {self.step}/{cfg.steps} loss {logs['total']:.4f} l1 {logs['l1']:.4f} "
+                    f"({rate:.2f} steps/s)",
+                    flush=True,
+                )
             if self.step % cfg.checkpoint_every == 0 or self.step == stop_at:
                 self.save()
         seconds = time.perf_counter() - t0
@@ -211,11 +230,22 @@ class Trainer:
         try:
             got = json.loads(path.read_text()) if path.exists() else {}
             got = {**prev, **got}
-            prev = {"steps": int(got["steps"]), "seconds": float(got["seconds"]), "invocations": int(got["invocations"])}
+            prev = {
+                "steps": int(got["steps"]),
+                "seconds": float(got["seconds"]),
+                "invocations": int(got["invocations"]),
+            }
         except (ValueError, TypeError, KeyError, RecursionError):
             pass  # a torn (killed run) or foreign file: start the tally again
         tot_steps, tot_s = prev["steps"] + steps, prev["seconds"] + seconds
-        atomic_write_json(path, {"steps": tot_steps, "seconds": round(tot_s, 2),
-                                 "steps_per_s": round(tot_steps / max(tot_s, 1e-9), 4),
-                                 "invocations": int(prev["invocations"]) + 1, "threads": torch.get_num_threads(),
-                                 "device": str(self.device)})
+        atomic_write_json(
+            path,
+            {
+                "steps": tot_steps,
+                "seconds": round(tot_s, 2),
+                "steps_per_s": round(tot_steps / max(tot_s, 1e-9), 4),
+                "invocations": int(prev["invocations"]) + 1,
+                "threads": torch.get_num_threads(),
+                "device": str(self.device),
+            },
+        )

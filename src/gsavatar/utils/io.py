@@ -40,7 +40,9 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     path = Path(path)
     check_output(path)  # refused before any folder is made when the path escapes the command's --out
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix if suffix is not None else path.suffix, dir=path.parent)
+    fd, tmp = tempfile.mkstemp(
+        prefix=f".{path.name}.", suffix=suffix if suffix is not None else path.suffix, dir=path.parent
+    )
     os.close(fd)
     tmp_path = Path(tmp)
     # mkstemp creates 0600; give the final file the usual umask-based mode.
@@ -174,8 +176,9 @@ def read_image(path: str | Path, keep_uint8: bool = False) -> np.ndarray:
         if buf.has_error:
             raise SchemaError(path, "", f"cannot decode EXR: {oiio_error(buf.geterror)}")
         if spec.width * spec.height > MAX_IMAGE_PIXELS:
-            raise SchemaError(path, "size", f"{spec.width}x{spec.height} pixels, more than the {MAX_IMAGE_PIXELS} "
-                                            "an image may have")
+            raise SchemaError(
+                path, "size", f"{spec.width}x{spec.height} pixels, more than the {MAX_IMAGE_PIXELS} an image may have"
+            )
         # Decode and check before the float copy: missing or corrupt scanline chunks (a header claiming 2305x2817
         # pixels in a 1 KB file) came back as an image of zeros, the error left pending.
         if not buf.read(0, 0, True) or buf.has_error:
@@ -219,8 +222,10 @@ def read_image(path: str | Path, keep_uint8: bool = False) -> np.ndarray:
     return arr
 
 
-MASK_ENCODINGS = ("single-channel 0..255 (or 0..65535), single-channel 0/1, grey RGB (equal channels), "
-                  "single-colour RGB (e.g. red 255,0,0 on black), or RGBA / grey+alpha with the mask in a varying alpha")
+MASK_ENCODINGS = (
+    "single-channel 0..255 (or 0..65535), single-channel 0/1, grey RGB (equal channels), "
+    "single-colour RGB (e.g. red 255,0,0 on black), or RGBA / grey+alpha with the mask in a varying alpha"
+)
 
 
 def decode_mask(raw: np.ndarray, path: str | Path = "mask") -> np.ndarray:
@@ -232,7 +237,9 @@ def decode_mask(raw: np.ndarray, path: str | Path = "mask") -> np.ndarray:
     photo, channels painted in different colours, float data) is refused with SchemaError naming ``path``.
     """
     if raw.dtype not in (np.uint8, np.uint16):
-        raise SchemaError(path, "", f"mask pixels must be 8- or 16-bit integers, got {raw.dtype}; masks are {MASK_ENCODINGS}")
+        raise SchemaError(
+            path, "", f"mask pixels must be 8- or 16-bit integers, got {raw.dtype}; masks are {MASK_ENCODINGS}"
+        )
     if raw.size == 0:  # the reductions below have no identity for zero pixels
         raise SchemaError(path, "", f"mask of shape {list(raw.shape)} has no pixels")
     if raw.ndim == 3 and raw.shape[2] == 1:
@@ -245,7 +252,9 @@ def decode_mask(raw: np.ndarray, path: str | Path = "mask") -> np.ndarray:
             m = col.max(axis=2)
             painted = [c for c in range(col.shape[2]) if col[..., c].any()]
             if not all(np.array_equal(col[..., c], m) for c in painted):
-                raise SchemaError(path, "", f"colour image, not a mask (its channels differ); masks are {MASK_ENCODINGS}")
+                raise SchemaError(
+                    path, "", f"colour image, not a mask (its channels differ); masks are {MASK_ENCODINGS}"
+                )
             raw = m
     if raw.ndim != 2:
         raise SchemaError(path, "", f"mask of shape {list(raw.shape)}; masks are {MASK_ENCODINGS}")
@@ -312,8 +321,9 @@ def _npy_header(f) -> tuple[tuple[int, ...], np.dtype]:
     return shape, dtype
 
 
-def read_npz(path: str | Path, keys: tuple[str, ...] | list[str] | None = None,
-             max_bytes: int = MAX_NPZ_ARRAY_BYTES) -> dict[str, np.ndarray]:
+def read_npz(
+    path: str | Path, keys: tuple[str, ...] | list[str] | None = None, max_bytes: int = MAX_NPZ_ARRAY_BYTES
+) -> dict[str, np.ndarray]:
     """The arrays of an npz (no pickles): all of them, or only those of ``keys`` that it holds (the others
     are never decompressed; callers check for missing keys with their own field names).
 
@@ -339,8 +349,9 @@ def read_npz(path: str | Path, keys: tuple[str, ...] | list[str] | None = None,
                 member = f"{k}.npy" if f"{k}.npy" in names else k
                 size = z.zip.getinfo(member).file_size
                 if size > max_bytes:
-                    raise SchemaError(path, k, f"{size} bytes uncompressed, more than the {max_bytes} an array may "
-                                               "have here")
+                    raise SchemaError(
+                        path, k, f"{size} bytes uncompressed, more than the {max_bytes} an array may have here"
+                    )
                 with z.zip.open(member) as m:
                     try:
                         shape, dtype = _npy_header(m)
@@ -350,19 +361,30 @@ def read_npz(path: str | Path, keys: tuple[str, ...] | list[str] | None = None,
                     raise SchemaError(path, k, "object array (pickled data is refused)")
                 nbytes = math.prod(shape) * dtype.itemsize
                 if nbytes > size:
-                    raise SchemaError(path, k, f"header declares shape {list(shape)} of {dtype} ({nbytes} bytes), "
-                                               f"the archive holds {size} bytes")
+                    raise SchemaError(
+                        path,
+                        k,
+                        f"header declares shape {list(shape)} of {dtype} ({nbytes} bytes), "
+                        f"the archive holds {size} bytes",
+                    )
                 out[k] = z[k]
             return out
     except SchemaError:
         raise
     except NPZ_READ_ERRORS as e:
-        raise SchemaError(path, "", f"cannot read npz (truncated, corrupt or not an npz of plain arrays): {e}") from None
+        raise SchemaError(
+            path, "", f"cannot read npz (truncated, corrupt or not an npz of plain arrays): {e}"
+        ) from None
 
 
-def load_versioned_npz(path: str | Path, fmt: str, version: int, required: tuple[str, ...] = (),
-                       what: str = "gsavatar", keys: tuple[str, ...] | None = None
-                       ) -> tuple[dict, dict[str, np.ndarray]]:
+def load_versioned_npz(
+    path: str | Path,
+    fmt: str,
+    version: int,
+    required: tuple[str, ...] = (),
+    what: str = "gsavatar",
+    keys: tuple[str, ...] | None = None,
+) -> tuple[dict, dict[str, np.ndarray]]:
     """Load an npz written with a JSON ``header`` (format + version); no pickles.
 
     ``keys``: optional arrays to read besides ``header`` and ``required`` (None: every array).

@@ -91,8 +91,11 @@ def output_kind(path: str | Path) -> str | None:
     if marker.exists():
         obj = read_json(marker)
         if not isinstance(obj, dict) or obj.get("format") != MARKER_FORMAT or obj.get("kind") not in LEGACY:
-            raise SchemaError(marker, "kind", f"not a gsavatar output marker (expected format {MARKER_FORMAT!r} "
-                                              f"and a kind of {sorted(LEGACY)})")
+            raise SchemaError(
+                marker,
+                "kind",
+                f"not a gsavatar output marker (expected format {MARKER_FORMAT!r} and a kind of {sorted(LEGACY)})",
+            )
         return obj["kind"]
     for kind, is_kind in LEGACY.items():
         if is_kind(d):
@@ -100,8 +103,9 @@ def output_kind(path: str | Path) -> str | None:
     return None
 
 
-def claim_output_dir(path: str | Path, kind: OutputKind, force: bool = False, force_flag: str = "--force",
-                     register: bool = False) -> Path:
+def claim_output_dir(
+    path: str | Path, kind: OutputKind, force: bool = False, force_flag: str = "--force", register: bool = False
+) -> Path:
     """Make ``path`` this command's output folder of ``kind``; returns it.
 
     Creates it (and its parents) if missing; an existing folder must be empty, or hold gsavatar output
@@ -122,11 +126,19 @@ def claim_output_dir(path: str | Path, kind: OutputKind, force: bool = False, fo
     if d.is_dir() and any(d.iterdir()):
         found = output_kind(d)
         if found is not None and found != kind:
-            raise SchemaError(d, "", f"holds a gsavatar {found} output, not a {kind}: choose another folder "
-                                     f"(two outputs in one folder would overwrite each other)")
+            raise SchemaError(
+                d,
+                "",
+                f"holds a gsavatar {found} output, not a {kind}: choose another folder "
+                f"(two outputs in one folder would overwrite each other)",
+            )
         if found is None and not force:
-            raise SchemaError(d, "", f"not empty and not a gsavatar {kind} output; choose an empty or new folder, "
-                                     f"or pass {force_flag} to write into it anyway")
+            raise SchemaError(
+                d,
+                "",
+                f"not empty and not a gsavatar {kind} output; choose an empty or new folder, "
+                f"or pass {force_flag} to write into it anyway",
+            )
     d.mkdir(parents=True, exist_ok=True)  # a file in the way: FileExistsError / NotADirectoryError (exit 2)
     if register:
         add_output_root(d)
@@ -178,8 +190,13 @@ def is_our_file(path: str | Path, kind: FileKind) -> bool:
     return rec.get("sha256") == sha256_file(p)
 
 
-def claim_output_file(path: str | Path, kind: FileKind, force: bool = False, force_flag: str = "--force",
-                      companions: tuple[str | Path, ...] = ()) -> Path:
+def claim_output_file(
+    path: str | Path,
+    kind: FileKind,
+    force: bool = False,
+    force_flag: str = "--force",
+    companions: tuple[str | Path, ...] = (),
+) -> Path:
     """Check that a command may write its single-file output ``path`` of ``kind``; returns it. Writes nothing.
 
     The extension must fit the kind (:data:`FILE_SUFFIXES`). An existing path must be a regular file that is a
@@ -193,8 +210,9 @@ def claim_output_file(path: str | Path, kind: FileKind, force: bool = False, for
     if kind not in FILE_SUFFIXES:
         raise ValueError(f"kind must be one of {sorted(FILE_SUFFIXES)}, got {kind!r}")
     if p.suffix.lower() not in FILE_SUFFIXES[kind]:
-        raise SchemaError(p, "", f"a {kind} output must end in {' or '.join(FILE_SUFFIXES[kind])}, got "
-                                 f"{p.suffix or 'no extension'!r}")
+        raise SchemaError(
+            p, "", f"a {kind} output must end in {' or '.join(FILE_SUFFIXES[kind])}, got {p.suffix or 'no extension'!r}"
+        )
     if p.is_dir():
         raise IsADirectoryError(f"{p}: is a directory; name the {kind} file to write")
     ours = False
@@ -203,12 +221,19 @@ def claim_output_file(path: str | Path, kind: FileKind, force: bool = False, for
             raise SchemaError(p, "", "exists and is not a regular file (a link, FIFO or device); choose another name")
         ours = is_our_file(p, kind)  # hashes the file once
         if not force and not ours:
-            raise SchemaError(p, "", f"exists and is not a gsavatar {kind} output; choose another name, or pass "
-                                     f"{force_flag} to replace it")
+            raise SchemaError(
+                p,
+                "",
+                f"exists and is not a gsavatar {kind} output; choose another name, or pass {force_flag} to replace it",
+            )
     for c in map(Path, companions):
         if c.is_symlink() or c.is_dir() or (c.exists() and not (force or ours)):
-            raise SchemaError(c, "", f"exists and was not written with {p.name} by gsavatar; choose another name for "
-                                     f"{p.name}, or pass {force_flag} to replace both")
+            raise SchemaError(
+                c,
+                "",
+                f"exists and was not written with {p.name} by gsavatar; choose another name for "
+                f"{p.name}, or pass {force_flag} to replace both",
+            )
     return p
 
 

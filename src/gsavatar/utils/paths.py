@@ -38,8 +38,12 @@ def check_name(name, file: str | Path, fld: str, what: str = "name") -> str:
         raise SchemaError(file, fld, f"{what} must be a string, got {type(name).__name__} {name!r}")
     if not name or len(name) > MAX_NAME or not _NAME.fullmatch(name):
         shown = name if len(name) <= 80 else name[:77] + "..."
-        raise SchemaError(file, fld, f"{what} {shown!r} is not a plain name (letters, digits and _ . - + : only, "
-                                     f"not starting with . or -, 1-{MAX_NAME} characters): it becomes part of file names")
+        raise SchemaError(
+            file,
+            fld,
+            f"{what} {shown!r} is not a plain name (letters, digits and _ . - + : only, "
+            f"not starting with . or -, 1-{MAX_NAME} characters): it becomes part of file names",
+        )
     return name
 
 

@@ -42,8 +42,12 @@ def actorshq_camera_entry(row: dict[str, float]) -> dict:
     position = np.array([row["tx"], row["ty"], row["tz"]])  # [3] camera centre in the world, metres
     cam_from_world = world_from_cam.T
     K = np.array([[row["fx"] * w, 0.0, row["px"] * w], [0.0, row["fy"] * h, row["py"] * h], [0.0, 0.0, 1.0]])
-    return {"K": K.tolist(), "R": cam_from_world.tolist(), "T": (-cam_from_world @ position).tolist(),
-            "imgSize": [int(w), int(h)]}
+    return {
+        "K": K.tolist(),
+        "R": cam_from_world.tolist(),
+        "T": (-cam_from_world @ position).tolist(),
+        "imgSize": [int(w), int(h)],
+    }
 
 
 def read_actorshq_calibration(file: Path) -> tuple[dict[str, Camera], dict[str, str]]:
@@ -104,7 +108,13 @@ class ActorsHQ:
         res = self.resolution
         cameras, names = read_actorshq_calibration(source_path(root, f"{res}/calibration.csv"))
         return ImportedSource(
-            layout=self.name, root=root, cameras=cameras, source_names=names,
+            layout=self.name,
+            root=root,
+            cameras=cameras,
+            source_names=names,
             image_pattern=f"{res}/rgbs/{{cam}}/{{cam}}_rgb{{frame:06d}}.jpg",
             mask_pattern=f"{res}/masks/{{cam}}/{{cam}}_mask{{frame:06d}}.png",
-            smplx_params=source_path(root, "smpl_params.npz"), missing=set(), fps=ACTORSHQ_FPS)
+            smplx_params=source_path(root, "smpl_params.npz"),
+            missing=set(),
+            fps=ACTORSHQ_FPS,
+        )

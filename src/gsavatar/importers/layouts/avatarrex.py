@@ -27,7 +27,13 @@ class AvatarReX:
         root = Path(src).resolve()
         cameras, names = read_source_calibration(source_path(root, "calibration_full.json"))
         return ImportedSource(
-            layout=self.name, root=root, cameras=cameras, source_names=names,
-            image_pattern="{cam}/{frame:08d}.jpg", mask_pattern="{cam}/mask/pha/{frame:08d}.jpg",
+            layout=self.name,
+            root=root,
+            cameras=cameras,
+            source_names=names,
+            image_pattern="{cam}/{frame:08d}.jpg",
+            mask_pattern="{cam}/mask/pha/{frame:08d}.jpg",
             smplx_params=source_path(root, "smpl_params.npz"),
-            missing=read_missing_views(source_path(root, "missing_img_files.txt"), names), fps=30.0)
+            missing=read_missing_views(source_path(root, "missing_img_files.txt"), names),
+            fps=30.0,
+        )

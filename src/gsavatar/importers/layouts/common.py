@@ -114,10 +114,12 @@ def read_source_calibration(file: Path) -> tuple[dict[str, Camera], dict[str, st
         for k in ("K", "R", "T", "imgSize"):
             if k not in c:
                 raise SchemaError(file, f"{key}.{k}", "missing")
-        entry = {"K": _flat(c["K"], (9,), file, f"{key}.K").reshape(3, 3).tolist(),
-                 "R": _flat(c["R"], (9,), file, f"{key}.R").reshape(3, 3).tolist(),
-                 "T": _flat(c["T"], (3,), file, f"{key}.T").tolist(),
-                 "imgSize": c["imgSize"]}
+        entry = {
+            "K": _flat(c["K"], (9,), file, f"{key}.K").reshape(3, 3).tolist(),
+            "R": _flat(c["R"], (9,), file, f"{key}.R").reshape(3, 3).tolist(),
+            "T": _flat(c["T"], (3,), file, f"{key}.T").tolist(),
+            "imgSize": c["imgSize"],
+        }
         if c.get("distCoeff") is not None:
             d = _flat(c["distCoeff"], (4, 5, 8, 12, 14), file, f"{key}.distCoeff")
             if np.any(d[5:]):  # OpenCV's rational/thin-prism terms: not in our camera model
