@@ -5,4 +5,7 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 export ANNY_CACHE_DIR=${ANNY_CACHE_DIR:-$PWD/.cache/anny}
 export VTK_DEFAULT_OPENGL_WINDOW=${VTK_DEFAULT_OPENGL_WINDOW:-vtkEGLRenderWindow}
+# the tree is formatted and linted by ruff (pyproject.toml [tool.ruff]) before any test runs
+.venv/bin/ruff format --check --quiet src tests benchmarks scripts
+.venv/bin/ruff check --quiet src tests benchmarks scripts
 exec .venv/bin/python -m pytest -q "$@"
