@@ -184,7 +184,8 @@ def main() -> None:
         results["paper"] = measure(dp, motion, max(a.frames // 4, 5), 2, a.sh0_only, times)
         report("preset paper (untrained)", results["paper"])
     print(
-        f"\ntorch threads {results['threads']}; load average {' '.join(f'{x:.2f}' for x in __import__('os').getloadavg())}"
+        f"\ntorch threads {results['threads']}; "
+        f"load average {' '.join(f'{x:.2f}' for x in __import__('os').getloadavg())}"
     )
     if a.json:
         a.json.write_text(json.dumps(results, indent=1))

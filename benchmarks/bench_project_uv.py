@@ -8,7 +8,8 @@ Not a test. For each texture size, visibility path (``--visibility``: the compil
 both see the same machine load) and their ratio, the time through gsavatar's readers,
 texels/s, and the error of the fused texture against the ground-truth texture (PSNR on
 texels seen by >= 2 views; ``median_band`` and, for comparison, ``mean`` fusion).
-Prints a markdown table, where one frame's projection goes (``--no-parts`` skips it), and (unless ``--no-stage-loop``) the stage's own loop at the largest size
+Prints a markdown table, where one frame's projection goes (``--no-parts`` skips it), and (unless
+``--no-stage-loop``) the stage's own loop at the largest size
 with the most threads: read a frame through gsavatar's readers and project it, frame after frame, with
 and without the next frame read in a background thread (``prefetched_frame_views``).
 
@@ -380,7 +381,8 @@ def main() -> None:
                 }
             )
             print(
-                f"#   {nth} thread(s): read then project {seq:.3f} s/frame, next frame read meanwhile {pre:.3f} s/frame "
+                f"#   {nth} thread(s): read then project {seq:.3f} s/frame, "
+                f"next frame read meanwhile {pre:.3f} s/frame "
                 f"({seq / pre:.2f}x)"
             )
     parts = None
@@ -398,13 +400,15 @@ def main() -> None:
 
     print()
     print(
-        "| tex size | visibility | threads | texel map (s, once) | texels projected | project s/frame | raw decode s/frame "
-        "| **project / raw decode** | read s/frame | project / read | texels/s | seen>=2 | PSNR median_band (dB) | PSNR mean (dB) |"
+        "| tex size | visibility | threads | texel map (s, once) | texels projected | project s/frame "
+        "| raw decode s/frame | **project / raw decode** | read s/frame | project / read | texels/s | seen>=2 "
+        "| PSNR median_band (dB) | PSNR mean (dB) |"
     )
     print("|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for size, vis, nth, t_map, n, s, d, io_, tps, s2, pm, pmean in rows:
         print(
-            f"| {size} | {vis} | {nth} | {t_map:.2f} | {n:,} | {s:.3f} | {d:.3f} | **{s / d:.2f}** | {io_:.3f} | {s / io_:.2f} | "
+            f"| {size} | {vis} | {nth} | {t_map:.2f} | {n:,} | {s:.3f} | {d:.3f} | **{s / d:.2f}** | "
+            f"{io_:.3f} | {s / io_:.2f} | "
             f"{tps / 1e6:.2f} M | {100 * s2:.0f} % | {pm:.2f} | {pmean:.2f} |"
         )
     if args.json is not None:

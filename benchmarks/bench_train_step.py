@@ -47,7 +47,8 @@ tr.cfg = type(tr.cfg)(**{**tr.cfg.__dict__, "max_steps_this_run": a["steps"]})
 t0, c0 = time.perf_counter(), time.process_time()
 tr.train()
 dt, dc = time.perf_counter() - t0, time.process_time() - c0
-print(json.dumps({"steps_per_s": a["steps"] / dt, "cpu_steps_per_s": a["steps"] / dc, "threads": torch.get_num_threads()}))
+print(json.dumps({"steps_per_s": a["steps"] / dt, "cpu_steps_per_s": a["steps"] / dc,
+                  "threads": torch.get_num_threads()}))
 """
 
 

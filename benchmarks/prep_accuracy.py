@@ -56,13 +56,15 @@ def main() -> None:
         rows.append((name, s, prep_s))
         print(json.dumps(s, indent=1))
     print(
-        "\n| capture | tex | frames | coverage | PSNR >=2 views (median band) | PSNR >=2 views, first frames: band / mean |"
+        "\n| capture | tex | frames | coverage | PSNR >=2 views (median band) "
+        "| PSNR >=2 views, first frames: band / mean |"
     )
     print("|---|---|---|---|---|---|")
     for name, s, _ in rows:
         mf = s.get("mean_fusion", {})
         print(
-            f"| {name} | {s['tex_size']} | {s['frames']} | {s['coverage']:.1%} | {s.get('psnr_2v', float('nan')):.2f} dB | "
+            f"| {name} | {s['tex_size']} | {s['frames']} | {s['coverage']:.1%} | "
+            f"{s.get('psnr_2v', float('nan')):.2f} dB | "
             f"{mf.get('median_band', float('nan')):.2f} / {mf.get('mean', float('nan')):.2f} dB |"
         )
 

@@ -5,7 +5,8 @@
 
 Per capture (``LABEL=DIR``), expects runs trained on the same dataset (``avatar-train avatar``): ``run_ours``
 (with a trained predictor, ``avatar-train predictor``), optionally ``run_oracle`` (``--texture-source gt``:
-the encoder reads the ground-truth albedo, an upper bound of the latent path), ``run_mmlps`` (``--variant mmlps_dagger``), ``run_nrfgca``
+the encoder reads the ground-truth albedo, an upper bound of the latent path), ``run_mmlps``
+(``--variant mmlps_dagger``), ``run_nrfgca``
 (``--variant nrfgca_dagger``) and, when
 present, ``run_wo_local_pose`` / ``run_wo_local_pca`` and ``run_ours_tinymodel`` (``--preset tiny --steps 1200
 --correctives-step 200``: the same schedule with (64, 64) anchor MLPs instead of (128, 128, 128), for speed
@@ -249,7 +250,10 @@ def capture_tables(label: str, runs: Path, image_scale: float, params: list[str]
             "Locality (paper fig. 6): +0.3 rad on one pose parameter at the first test frame; mean change "
             "of Gaussian colour (RGB, 0..1) and canonical position outside / inside the parameter's region.",
             "",
-            "| run | parameter | colour outside | colour inside | position outside (mm) | position inside (mm) | region |",
+            (
+                "| run | parameter | colour outside | colour inside | position outside (mm) "
+                "| position inside (mm) | region |"
+            ),
             "|---|---|---|---|---|---|---|",
         ]
         for rdir, r in loc:

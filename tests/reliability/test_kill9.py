@@ -238,7 +238,8 @@ def test_training_killed_at_a_random_step_then_resumed_equals_uninterrupted(
     kill_group(p)
     assert p.returncode == -signal.SIGKILL, f"training finished (exit {p.returncode}) before the kill at step {step}"
     print(
-        f"killed {delay * 1e3:.0f} ms after step {step} was logged; checkpoint: {(run / 'checkpoints/latest.pt').exists()}"
+        f"killed {delay * 1e3:.0f} ms after step {step} was logged; "
+        f"checkpoint: {(run / 'checkpoints/latest.pt').exists()}"
     )
     assert train_main(argv) == 0  # resumes from the last complete checkpoint (or from scratch)
     assert curve(run) == curve(train_reference)

@@ -26,7 +26,8 @@ FPS = 30.0
 
 @pytest.mark.parametrize("f_hz,zeta", [(0.8, 0.2), (1.5, 0.3), (3.0, 0.7)])
 def test_spring_step_response_is_the_closed_form(f_hz, zeta):
-    """A unit step of the input from frame 0: x(t) = 1 - e^(-zeta w t) (cos w_d t + zeta / sqrt(1 - zeta^2) sin w_d t)."""
+    """A unit step of the input from frame 0:
+    x(t) = 1 - e^(-zeta w t) (cos w_d t + zeta / sqrt(1 - zeta^2) sin w_d t)."""
     n = 120
     x = spring_response(np.ones(n), FPS, f_hz, zeta)
     w = 2 * np.pi * f_hz

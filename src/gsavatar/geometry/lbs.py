@@ -241,7 +241,8 @@ def lbs(points: Tensor, skin_indices: Tensor, skin_weights: Tensor, transforms: 
         raise ValueError(f"points must be [N, 3], got {tuple(points.shape)}")
     if skin_indices.shape != skin_weights.shape or skin_indices.shape[0] != points.shape[0]:
         raise ValueError(
-            f"skin_indices/skin_weights must both be [N={points.shape[0]}, K], got {tuple(skin_indices.shape)} and {tuple(skin_weights.shape)}"
+            f"skin_indices/skin_weights must both be [N={points.shape[0]}, K], "
+            f"got {tuple(skin_indices.shape)} and {tuple(skin_weights.shape)}"
         )
     # Blend only the 3x4 affine rows: [B, N, 3, 4], avoids materialising [B, N, K, 4, 4] twice.
     A = torch.einsum("nk,bnkij->bnij", skin_weights.to(transforms.dtype), transforms[:, skin_indices.long(), :3, :])
@@ -249,7 +250,8 @@ def lbs(points: Tensor, skin_indices: Tensor, skin_weights: Tensor, transforms: 
 
 
 def barycentric_interpolate(values: np.ndarray | Tensor, faces, face_idx, bary):
-    """Transfer per-vertex values to surface points. values [V, ...], faces [F,3], face_idx [N], bary [N,3] -> [N, ...]."""
+    """Transfer per-vertex values to surface points.
+    values [V, ...], faces [F,3], face_idx [N], bary [N,3] -> [N, ...]."""
     corners = values[faces[face_idx]]  # [N, 3, ...]
     shape = (bary.shape[0], 3) + (1,) * (corners.ndim - 2)
     return (corners * bary.reshape(shape)).sum(1)

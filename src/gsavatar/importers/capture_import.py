@@ -38,7 +38,8 @@ TEST_FRAME_FRACTION = 0.1
 @dataclass
 class ImportOptions:
     frames: str | None = None
-    """Source frames to import, ``start:stop[:step]`` (Python slice, stop exclusive); default: every frame of the fit."""
+    """Source frames to import, ``start:stop[:step]`` (Python slice, stop exclusive); default: every frame of the
+    fit."""
     cameras: tuple[str, ...] = ()
     """Cameras to import (capture or source names); default: all."""
     test_cameras: tuple[str, ...] = ()

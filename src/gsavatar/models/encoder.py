@@ -109,7 +109,8 @@ def mask_texture(texture: Tensor, face_uv_mask: Tensor, fill: float = 0.0) -> Te
     """
     if texture.ndim != 4 or face_uv_mask.ndim != 2:
         raise ValueError(
-            f"texture must be [B, C, S, S] and face_uv_mask [h, w], got {tuple(texture.shape)}, {tuple(face_uv_mask.shape)}"
+            f"texture must be [B, C, S, S] and face_uv_mask [h, w], "
+            f"got {tuple(texture.shape)}, {tuple(face_uv_mask.shape)}"
         )
     m = face_uv_mask.to(device=texture.device, dtype=torch.float32)[None, None]
     m = F.interpolate(m, size=texture.shape[-2:], mode="nearest")[0, 0] > 0.5  # [S, S]

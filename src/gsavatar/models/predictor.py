@@ -147,7 +147,8 @@ class RolloutState(NamedTuple):
 
 
 KINEMATICS_KEYS = ("kin_heads", "kin_parents", "kin_param_joint", "kin_param_axis", "kin_param_size")
-"""State-dict buffers of a predictor with ``joint_tokens``: the :class:`KinematicChain` arrays, in its argument order."""
+"""State-dict buffers of a predictor with ``joint_tokens``: the :class:`KinematicChain` arrays, in its argument
+order."""
 
 
 class LatentPCA(NamedTuple):

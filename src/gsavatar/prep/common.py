@@ -172,7 +172,8 @@ def run_frame_stage(
         print(f"[{stage}] {len(frames)} frames in {len(specs)} shards, {dt:.1f}s -> {store.dir}")
     elif not done:
         print(
-            f"[{stage}] rank {info.rank}/{info.world}: my shards are written; the manifest is merged once all ranks finish "
+            f"[{stage}] rank {info.rank}/{info.world}: my shards are written; "
+            f"the manifest is merged once all ranks finish "
             f"(re-run without --shard to merge)"
         )
     barrier(info)

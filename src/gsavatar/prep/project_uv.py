@@ -62,22 +62,26 @@ class ProjectConfig:
     """UV texture resolution (square); 0 = derived from the capture by ``avatar-prep`` (see
     ``stages.auto_tex_size``: 512 for 256^2 views, capped at the paper's 1024)."""
     erode_px: int = 5
-    """Side of the square kernel eroding the foreground mask (``mask > mask_threshold``) before sampling; 0 = no erosion."""
+    """Side of the square kernel eroding the foreground mask (``mask > mask_threshold``) before sampling; 0 = no
+    erosion."""
     min_cos: float = 0.1
-    """Minimum cosine between the texel normal and the direction to the camera; below it the texel is back-facing/grazing and not seen."""
+    """Minimum cosine between the texel normal and the direction to the camera; below it the texel is
+    back-facing/grazing and not seen."""
     band: tuple[float, float] = (0.8, 1.1)
     """Kept luminance range ``[lo, hi]`` as multiples of the per-texel median luminance (``median_band`` fusion)."""
     fusion: Literal["median_band", "mean"] = "median_band"
     """``median_band``: the paper's rule; ``mean``: plain average of all samples (for comparison)."""
     mask_face: bool = True
-    """Blank the face region (``template.face_uv_mask``): texture 0, ``valid`` False there (the face is explained by the face embedding)."""
+    """Blank the face region (``template.face_uv_mask``): texture 0, ``valid`` False there (the face is explained
+    by the face embedding)."""
     mask_threshold: float = 0.5
     """Foreground threshold on the [0, 1] mask."""
     occlusion_eps: float = 1e-3
     """Occluders closer than this (metres, along the ray texel -> camera) do not hide a texel: the ``rays`` path starts
     its ray this far off the texel, the ``zbuffer`` path tolerates this depth difference."""
     gutter_px: float = 1.0
-    """Texels outside every UV triangle but within this distance (texels) of one are projected too (seam dilation); used when building the TexelMap."""
+    """Texels outside every UV triangle but within this distance (texels) of one are projected too (seam
+    dilation); used when building the TexelMap."""
     chunk: int = 1 << 18
     """Texels processed per vectorised batch (bounds temporary memory; ``rays`` path only)."""
     visibility: Literal["zbuffer", "rays"] = "zbuffer"
@@ -477,11 +481,13 @@ class UVProjector:
             image = np.repeat(image[..., None], 3, axis=2)
         if image.shape[:2] != (cam.height, cam.width) or image.shape[2] < 3:
             raise ValueError(
-                f"frame {frame}: image of camera {cam.name!r} is {image.shape}, calibration says {cam.height}x{cam.width}x3"
+                f"frame {frame}: image of camera {cam.name!r} is {image.shape}, "
+                f"calibration says {cam.height}x{cam.width}x3"
             )
         if mask is not None and np.asarray(mask).shape[:2] != (cam.height, cam.width):
             raise ValueError(
-                f"frame {frame}: mask of camera {cam.name!r} is {np.asarray(mask).shape}, calibration says {cam.height}x{cam.width}"
+                f"frame {frame}: mask of camera {cam.name!r} is {np.asarray(mask).shape}, "
+                f"calibration says {cam.height}x{cam.width}"
             )
         m = mask if mask is None or np.asarray(mask).ndim == 2 else np.asarray(mask)[..., 0]
         key = _camera_key(cam)

@@ -32,7 +32,8 @@ class TexelMap(NamedTuple):
     face: np.ndarray
     """Triangle covering each texel centre, -1 = none.  # [H, W] int32"""
     bary: np.ndarray
-    """Barycentrics of the texel centre in that triangle (clamped for gutter texels), rows sum to 1.  # [H, W, 3] float32"""
+    """Barycentrics of the texel centre in that triangle (clamped for gutter texels), rows sum to 1.
+    # [H, W, 3] float32"""
     size: int
     """Texture resolution (square: H = W = size)."""
     interior: np.ndarray

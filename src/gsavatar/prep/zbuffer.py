@@ -26,7 +26,8 @@ Depth test: the texel's pinhole grid coordinate is rounded to the nearest grid p
 pixel's front triangle ``t`` is read. The texel is visible when ``t`` is empty, the texel's
 own triangle or one sharing a vertex with it (on a coarse mesh a neighbour facet's plane,
 extrapolated to the texel, passes up to several mm in front of it at oblique views: measured
-2.7 % false occlusions on a 24-segment sphere without this rule, the ray path has none), else when the depth of ``t``'s *plane* along the texel's exact ray is not in front
+2.7 % false occlusions on a 24-segment sphere without this rule, the ray path has none), else when the
+depth of ``t``'s *plane* along the texel's exact ray is not in front
 of the texel by more than ``eps`` (metres along the ray, like the ray path's offset start):
 ``z_texel * (1 - eps / dist) <= z_plane``. Evaluating the plane on the texel's own ray, not the
 pixel-centre depth, removes the half-pixel slope error at oblique angles. Differences from

@@ -9,7 +9,8 @@ stop are touched and nothing is padded. Tiles run in parallel (``numba.prange``)
 Backward re-walks each pixel's list once instead of storing per-pair state, applying gsplat's VJP
 front to back with ``behind_i = total - prefix_i`` (the torch oracle's cumsum form), where
 ``total = sum_i w_i g.c_i`` is ``g . (output features, alpha)`` from the forward's float64 output.
-Gradients go to per list entry rows, which belong to exactly one tile, so parallel tiles never write the same row; torch then
+Gradients go to per list entry rows, which belong to exactly one tile, so parallel tiles never write the
+same row; torch then
 adds them up per instance.
 
 Arithmetic is float64 inside the kernels whatever the input dtype; outputs are cast back.

@@ -427,7 +427,8 @@ class MakeArgs:
     overwrite: bool = False
     """Replace an existing capture in ``out``."""
     force_out: bool = False
-    """Write into a non-empty ``out`` that holds no capture (refused otherwise, so a user's files are never overwritten)."""
+    """Write into a non-empty ``out`` that holds no capture (refused otherwise, so a user's files are never
+    overwritten)."""
 
 
 def main() -> int:

@@ -86,7 +86,8 @@ class SynthConfig:
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
     """Time-varying ground-truth appearance."""
     special_cameras: tuple[SpecialKind, ...] = ()
-    """Extra stress views: ``top`` (grazing, from above), ``floor`` (grazing, from the feet), ``away`` (sees nothing)."""
+    """Extra stress views: ``top`` (grazing, from above), ``floor`` (grazing, from the feet), ``away`` (sees
+    nothing)."""
     occluded_camera: str | None = None
     """Dome camera that sees a box occluding part of the body (only that view has the box)."""
     corrupted_camera: str | None = None

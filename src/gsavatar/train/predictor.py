@@ -9,7 +9,8 @@ pose history of every frame is its ``N_b`` most recent frames, clamped at the se
 start (= repeating the first frame, like :meth:`AppearancePredictor.init_state`). The
 predictor is unrolled over the window, feeding back its own (clamped) predictions;
 the first step gets the target latents of ``s-1`` (GT-context pass) or the "zero" latents
-(zero-context pass; :meth:`AppearancePredictor.zero_latents`: the training mean by default). Both passes run as one doubled batch; their losses are summed:
+(zero-context pass; :meth:`AppearancePredictor.zero_latents`: the training mean by default). Both passes run
+as one doubled batch; their losses are summed:
 per pass L1 on the latents + L1 on the velocity, acceleration and jerk (1st..3rd finite
 differences over the unrolled window) against those of the targets, all weight 1.
 The optional InitialLatentNet is trained alongside on random train frames (L1).
