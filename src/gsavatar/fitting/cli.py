@@ -64,8 +64,13 @@ class FitBody:
         fit_body(self)
 
 
+FIT_VERSION = 2
+"""Bumped whenever the fit's result for the same inputs changes (shards of another version are refitted)."""
+
+
 def _fingerprint(keypoints: np.ndarray, args: FitBody, joint_map) -> str:
     h = hashlib.sha256(np.ascontiguousarray(keypoints, np.float64).tobytes())
+    h.update(f"fit-body v{FIT_VERSION}".encode())
     h.update(json.dumps(dataclasses.asdict(args.fit), sort_keys=True).encode())
     h.update(np.asarray(joint_map.keypoints).tobytes() + np.asarray(joint_map.joints).tobytes())
     return h.hexdigest()[:16]

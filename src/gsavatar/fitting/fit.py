@@ -94,13 +94,23 @@ def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[np.ndarray,
 
 
 def initial_root(rig, joints: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Root rotation (axis-angle) and translation per frame from the rest-pose joints to the triangulated
-    points by Kabsch. joints [M] rig joint indices, points [F, M, 3] (NaN: unset) -> ([F, 3], [F, 3]).
+    """Root rotation (axis-angle) and translation per frame from the rest-pose torso joints (the mapped joints
+    nearest the root: depth <= 2 in the tree, at least 3) to their triangulated points by Kabsch.
+    joints [M] rig joint indices, points [F, M, 3] (NaN: unset) -> ([F, 3], [F, 3]).
     Frames with fewer than 3 points copy the nearest frame that has them (zeros if none has)."""
     F = points.shape[0]
     heads = rig.heads().astype(np.float64)
+    parents = rig.parents()
+    root = int(np.flatnonzero(parents < 0)[0])
+    # the torso: the mapped joints nearest the root in the tree (limbs in the rest pose would tilt the fit)
+    depth = np.zeros(len(parents), int)
+    for j in range(len(parents)):
+        depth[j] = 0 if parents[j] < 0 else depth[parents[j]] + 1
+    d = depth[joints]
+    torso = d <= max(2, np.sort(d)[min(2, len(d) - 1)])
+    torso |= d <= np.sort(d[~torso])[0] if (~torso).any() and torso.sum() < 3 else torso
+    joints, points = np.asarray(joints)[torso], points[:, torso]
     rest = heads[joints]
-    root = int(np.flatnonzero(rig.parents() < 0)[0])
     rot, trans = np.zeros((F, 3)), np.zeros((F, 3))
     good = np.zeros(F, bool)
     for t in range(F):
