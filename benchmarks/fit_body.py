@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -154,9 +155,7 @@ def main() -> None:
     wall = time.perf_counter() - t0
     report = json.loads((fitted / "fit" / "report.json").read_text())
     res = {
-        "command": "PYTHONPATH=src OMP_NUM_THREADS=1 .venv/bin/python benchmarks/fit_body.py "
-        + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in (("capture", a.capture), ("work", a.work)))
-        + (" --train" if a.train else ""),
+        "command": "PYTHONPATH=src OMP_NUM_THREADS=1 .venv/bin/python benchmarks/fit_body.py " + " ".join(sys.argv[1:]),
         "machine": f"{platform.system()} {platform.machine()}, CPU only, torch {torch.__version__}, "
         f"{torch.get_num_threads()} thread(s)",
         "keypoints": {"noise_px": 2.0, "outlier_fraction": 0.1, "drop_fraction": 0.2, "format": "body25"},
