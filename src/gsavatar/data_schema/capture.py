@@ -27,7 +27,8 @@ from gsavatar.utils.errors import SchemaError
 from gsavatar.data_schema.rig import Rig, load_rig
 from gsavatar.data_schema.template import Template, load_template
 from gsavatar.data_schema.limits import check_fps, check_motion_values
-from gsavatar.utils.jsonio import is_int
+from gsavatar.utils.io import atomic_save_npz, atomic_write_json, oiio_error, read_npz
+from gsavatar.utils.jsonio import is_int, read_json
 from gsavatar.utils.paths import check_name
 
 FOCAL_RANGE = (0.01, 100.0)
@@ -102,8 +103,6 @@ class Motion:
         return int(self.pose.shape[0])
 
     def save(self, path: str | Path) -> None:
-        from gsavatar.utils.io import atomic_save_npz
-
         arrays = {"pose": self.pose, "root_rotation": self.root_rotation, "root_translation": self.root_translation}
         if self.face is not None:
             arrays["face"] = self.face
@@ -138,8 +137,6 @@ class Capture:
 
 # --------------------------------------------------------------------------- helpers
 def _read_json(path: Path):
-    from gsavatar.utils.jsonio import read_json
-
     return read_json(path)
 
 
@@ -237,8 +234,6 @@ def _real_array(a: np.ndarray, file: Path, fld: str) -> np.ndarray:
 
 def load_motion(path: Path, num_frames: int, pose_dim: int, frames_from: Path | None = None) -> Motion:
     """``frames_from``: the file ``num_frames`` comes from (capture.json), named when the frame counts disagree."""
-    from gsavatar.utils.io import read_npz
-
     z = read_npz(path, keys=("pose", "root_rotation", "root_translation", "face"))
     arrays = {}
     for key, width in (("pose", pose_dim), ("root_rotation", 3), ("root_translation", 3)):
@@ -370,8 +365,6 @@ def check_images(cap: Capture, frames: list[int] | None = None, cams: list[str] 
     """Verify every image/mask exists and has the calibrated size (reads headers only)."""
     import OpenImageIO as oiio
 
-    from gsavatar.utils.io import oiio_error
-
     frames = list(range(cap.num_frames)) if frames is None else frames
     for cam in cams or list(cap.cameras):
         c = cap.cameras[cam]
@@ -399,8 +392,6 @@ def write_capture_metadata(
     root: str | Path, fps: float, num_frames: int, cameras: dict[str, Camera], splits: dict[str, Split]
 ) -> None:
     """Write capture.json, calibration.json and splits.json atomically."""
-    from gsavatar.utils.io import atomic_write_json
-
     root = Path(root)
     atomic_write_json(
         root / "capture.json",

@@ -24,6 +24,7 @@ from typing import Literal
 import numpy as np
 
 from gsavatar.utils.errors import SchemaError
+from gsavatar.utils.io import atomic_write_text
 from gsavatar.utils.jsonio import is_number, read_json
 from gsavatar.utils.paths import check_name
 
@@ -132,8 +133,6 @@ class Rig:
         }
 
     def save(self, path: str | Path) -> None:
-        from gsavatar.utils.io import atomic_write_text
-
         atomic_write_text(path, json.dumps(self.to_json(), indent=1))
 
 

@@ -12,7 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
+from gsavatar.geometry.mesh_io import read_obj, write_obj
 from gsavatar.utils.errors import SchemaError
+from gsavatar.utils.io import atomic_save_npz, read_mask, read_npz, write_image
 
 SKIN_TOP_K = 4
 """Skinning slots per vertex K in ``skin_weights.npz`` as gsavatar's own templates write it (synthetic bodies,
@@ -100,13 +102,9 @@ def validate_template(t: Template, num_joints: int, where: Path) -> None:
 
 def load_template(where: str | Path, num_joints: int) -> Template:
     """Load and validate ``template/`` (mesh.obj, skin_weights.npz, optional face_uv_mask.png)."""
-    from gsavatar.geometry.mesh_io import read_obj
-
     where = Path(where)
     obj = read_obj(where / "mesh.obj")
     sw = where / "skin_weights.npz"
-    from gsavatar.utils.io import read_npz
-
     z = read_npz(sw, keys=("indices", "weights"))
     if "indices" not in z or "weights" not in z:
         raise SchemaError(sw, "indices/weights", f"missing; has {sorted(z)}")
@@ -120,8 +118,6 @@ def load_template(where: str | Path, num_joints: int) -> Template:
     mask = None
     mpath = where / "face_uv_mask.png"
     if mpath.exists():
-        from gsavatar.utils.io import read_mask
-
         mask = read_mask(mpath) > 0.5
     t = Template(obj.vertices, obj.faces, idx, w, obj.uvs, obj.face_uvs, mask)
     validate_template(t, num_joints, where)
@@ -129,9 +125,6 @@ def load_template(where: str | Path, num_joints: int) -> Template:
 
 
 def save_template(t: Template, where: str | Path) -> None:
-    from gsavatar.geometry.mesh_io import write_obj
-    from gsavatar.utils.io import atomic_save_npz, write_image
-
     where = Path(where)
     write_obj(where / "mesh.obj", t.vertices, t.faces, t.uvs, t.face_uvs)
     atomic_save_npz(

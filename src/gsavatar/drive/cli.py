@@ -34,15 +34,21 @@ import numpy as np
 import torch
 import tyro
 
+from gsavatar.data_schema import SchemaError, check_images
 from gsavatar.data_schema.views import UndistortMaps
 from gsavatar.drive.driver import DriveConfig, Driver, load_predictor_for, texture_source
-from gsavatar.runs.load import predictor_from_checkpoint
+from gsavatar.drive.live import export_drive_plys
+from gsavatar.drive.metrics import SequenceMetrics, load_ground_truth, measure_ramp_up, write_ramp_up
+from gsavatar.drive.motion import load_driving_motion
+from gsavatar.drive.viewer import serve_drive_args
+from gsavatar.runs.load import load_run, predictor_from_checkpoint
 from gsavatar.metrics.lpips import LPIPSMode, load_lpips
 from gsavatar.metrics.protocols import PROTOCOLS, load_ag_lpips
 from gsavatar.utils.cli import run_reporting_errors
 from gsavatar.utils.io import atomic_path, atomic_save_npz, atomic_write_json, write_image
 from gsavatar.utils.outdir import claim_output_dir
 from gsavatar.utils.paths import output_path
+from gsavatar.utils.progress import progress_bar
 
 
 @dataclass(kw_only=True)
@@ -130,11 +136,6 @@ def drive(args: DriveArgs) -> dict:
     """Run ``avatar-drive`` (see module docstring); returns the drive.json summary."""
     import imageio.v2 as imageio
 
-    from gsavatar.drive.metrics import SequenceMetrics, load_ground_truth, measure_ramp_up, write_ramp_up
-    from gsavatar.drive.motion import load_driving_motion
-    from gsavatar.runs.load import load_run
-    from gsavatar.utils.progress import progress_bar
-
     cfg = args.config()
     if args.motion_fps < 0 or args.count < 0 or args.ramp_up < 0:
         raise ValueError("motion_fps, count and ramp_up must be >= 0")
@@ -164,15 +165,11 @@ def drive(args: DriveArgs) -> dict:
     for w in motion_warnings:
         print(f"warning: {w}", file=sys.stderr)
     if motion.face is not None and motion.face.shape[1] != d.face_dim:
-        from gsavatar.data_schema import SchemaError
-
         raise SchemaError(args.motion, "face", f"has {motion.face.shape[1]} columns, the avatar expects {d.face_dim}")
     gt = motion.gt if cfg.cameras == "capture" else None
     if motion.gt is not None:
         d.use_capture_cameras(motion.gt.capture)
     if gt is not None:  # missing or misfit ground truth fails here, before OUT is touched
-        from gsavatar.data_schema import check_images
-
         check_images(gt.capture, sorted(set(gt.frames)), [v.name for v in d.views])
     textures = texture_source(motion, scene, cfg.textures) if d.needs_textures else None
     lp, lp_name = load_lpips(args.lpips, d.device, fallback=True) if gt is not None else (None, "off")
@@ -274,12 +271,8 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as e:
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
     if args.view:
-        from gsavatar.drive.viewer import serve_drive_args
-
         return run_reporting_errors(lambda: serve_drive_args(args))
     if args.export_ply is not None:
-        from gsavatar.drive.live import export_drive_plys
-
         rc = run_reporting_errors(lambda: export_drive_plys(args))
         if rc or args.out is None:
             return rc

@@ -25,6 +25,9 @@ from gsavatar.drive.driver import DriveConfig, Driver, motion_inputs
 from gsavatar.drive.metrics import load_ground_truth
 from gsavatar.drive.motion import load_driving_motion
 from gsavatar.metrics.image import psnr
+from gsavatar.runs.latents import mean_train_latent
+from gsavatar.runs.load import load_run
+from gsavatar.utils.cli import run_reporting_errors
 from gsavatar.utils.io import atomic_write_json, read_npz, write_image
 from gsavatar.utils.outdir import claim_output_file, record_output_file
 
@@ -61,9 +64,6 @@ def _panel(img: torch.Tensor, height: int, text: str, min_width: int = 220) -> n
 
 @torch.no_grad()
 def compare(args: CompareArgs) -> dict:
-    from gsavatar.runs.latents import mean_train_latent
-    from gsavatar.runs.load import load_run
-
     claim_output_file(args.out, "figure", args.force, companions=(Path(args.out).with_suffix(".json"),))
     sources: dict[str, np.ndarray] = {}
     for spec in args.drive:
@@ -153,8 +153,6 @@ def compare(args: CompareArgs) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     import tyro
-
-    from gsavatar.utils.cli import run_reporting_errors
 
     args = tyro.cli(CompareArgs, args=argv, description=__doc__)
     return run_reporting_errors(lambda: compare(args))

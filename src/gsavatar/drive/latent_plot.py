@@ -21,6 +21,7 @@ import torch
 
 from gsavatar.data_schema import SchemaError, load_capture
 from gsavatar.runs.load import predictor_from_checkpoint, run_predictor_path
+from gsavatar.utils.cli import run_reporting_errors
 from gsavatar.utils.io import atomic_write_json, read_npz, write_image
 from gsavatar.utils.jsonio import read_json
 from gsavatar.utils.outdir import claim_output_file, record_output_file
@@ -193,8 +194,6 @@ def write_latent_plot(args: LatentPlotArgs) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     import tyro
-
-    from gsavatar.utils.cli import run_reporting_errors
 
     args = tyro.cli(LatentPlotArgs, args=argv)
 

@@ -25,9 +25,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from gsavatar.drive.driver import Driver, FrameInputs
+from gsavatar.data_schema import SchemaError
+from gsavatar.drive.driver import Driver, FrameInputs, motion_inputs, texture_source
+from gsavatar.drive.motion import load_driving_motion
 from gsavatar.drive.sources import LATENT_SOURCES
+from gsavatar.models.ply import export_frame_ply
 from gsavatar.render.sh import SH_C0, eval_sh_colors
+from gsavatar.runs.latents import mean_train_latent
+from gsavatar.utils.outdir import claim_output_dir
+from gsavatar.utils.progress import progress_bar
 
 MEAN_LATENT = "mean_latent"
 """Viewer-only latent source: the training frames' mean encoder latent, every frame."""
@@ -256,8 +262,6 @@ class LiveGaussians:
     def mean_latent(self) -> Tensor:
         """The training frames' mean encoder latent (computed once).  # [A, L]"""
         if self._mean is None:
-            from gsavatar.runs.latents import mean_train_latent
-
             d = self.driver
             self._mean = mean_train_latent(d.net, d.scene, d.device, d.train_cfg.texture_source)
         return self._mean
@@ -341,12 +345,6 @@ def export_drive_plys(args) -> int:
     """
     from pathlib import Path
 
-    from gsavatar.drive.driver import texture_source
-    from gsavatar.drive.motion import load_driving_motion
-    from gsavatar.models.ply import export_frame_ply
-    from gsavatar.utils.outdir import claim_output_dir
-    from gsavatar.utils.progress import progress_bar
-
     cfg = args.config()
     d = Driver(args.run, cfg)
     motion = load_driving_motion(
@@ -359,14 +357,11 @@ def export_drive_plys(args) -> int:
         split=args.split,
     )
     if motion.face is not None and motion.face.shape[1] != d.face_dim:
-        from gsavatar.data_schema import SchemaError
-
         raise SchemaError(args.motion, "face", f"has {motion.face.shape[1]} columns, the avatar expects {d.face_dim}")
     textures = texture_source(motion, d.scene, cfg.textures) if d.needs_textures else None
     out = claim_output_dir(Path(args.export_ply), "drive", args.force, register=True)
     T = motion.num_frames
     with torch.inference_mode(), progress_bar(f"avatar-drive --export-ply ({T} frames)", T) as bar:
-        from gsavatar.drive.driver import motion_inputs
 
         def inputs(t: int) -> FrameInputs:
             return motion_inputs(motion, t, textures(t) if d.texture_needed_at(t) else None)

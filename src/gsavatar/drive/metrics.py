@@ -28,6 +28,7 @@ from torch import Tensor
 from gsavatar.data_schema.views import UndistortMaps, load_view, scaled_camera
 from gsavatar.drive.driver import motion_inputs
 from gsavatar.drive.sources import ramp_up_modes, source_class
+from gsavatar.metrics.image import psnr, ssim
 from gsavatar.metrics.protocols import ag_scores, on_white
 from gsavatar.utils.io import atomic_write_json, write_image
 
@@ -49,8 +50,6 @@ def composite(image: Tensor, mask: Tensor, background: Tensor) -> Tensor:
 
 def image_scores(pred: Tensor, gt: Tensor, mask: Tensor, lpips=None) -> dict[str, float]:
     """pred, gt [3,H,W] in [0,1], mask [1,H,W] -> psnr, psnr_fg (inside mask > 0.5), ssim[, lpips]."""
-    from gsavatar.metrics.image import psnr, ssim
-
     p, g = pred[None].float(), gt[None].float().to(pred.device)
     m = (mask[None].to(pred.device) > 0.5).expand_as(p)
     out = {
@@ -324,8 +323,6 @@ def measure_ramp_up(
             fr = d.step(inputs[t], render=gts is not None)
             lat_err.append(float((fr.latents - targets[t]).abs().mean()))
             if gts is not None:
-                from gsavatar.metrics.image import psnr
-
                 ps.append(
                     float(np.mean([float(psnr(chw(fr.images[c])[None], chw(gts[t][c][0])[None])[0]) for c in cams]))
                 )

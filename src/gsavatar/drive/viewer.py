@@ -43,9 +43,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gsavatar.data_schema import SchemaError
 from gsavatar.drive.driver import DriveConfig, Driver, FrameInputs, motion_inputs, texture_source
 from gsavatar.drive.live import MEAN_LATENT, LiveGaussians
 from gsavatar.drive.motion import DrivingMotion, load_driving_motion
+from gsavatar.runs.load import load_run
+from gsavatar.utils.cli import run_reporting_errors
 
 
 @dataclass
@@ -645,8 +648,6 @@ def viewer_from_run(
     encoder raises ValueError naming what is missing. Without ``motion`` the mode is ``mean_latent``
     when the run has an encoder.
     """
-    from gsavatar.runs.load import load_run
-
     cfg = config or DriveConfig(device="cpu")
     loaded = load_run(run, cfg.device)
     if motion is None and loaded.net.encoder is not None and loaded.net.avatar.latent_in:
@@ -660,8 +661,6 @@ def viewer_from_run(
             motion, cap.rig, d.fps, fps=motion_fps or None, start=start, count=count or None, split=split
         )
         if m.face is not None and m.face.shape[1] != d.face_dim:
-            from gsavatar.data_schema import SchemaError
-
             raise SchemaError(motion, "face", f"has {m.face.shape[1]} columns, the avatar expects {d.face_dim}")
         if m.gt is not None:
             d.use_capture_cameras(m.gt.capture)
@@ -693,8 +692,6 @@ class ViewArgs(ViewerOptions):
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m gsavatar.drive.viewer`` (``avatar-train view``); exit 2 on bad input."""
     import tyro
-
-    from gsavatar.utils.cli import run_reporting_errors
 
     try:
         args = tyro.cli(ViewArgs, args=argv, prog="avatar-train view", description=__doc__)

@@ -21,15 +21,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import cv2
 import numpy as np
+import torch
 
 from gsavatar.data_schema import load_capture
 from gsavatar.data_schema.capture import Motion, write_capture_metadata
 from gsavatar.fitting.fit import FitConfig, fit_sequence
 from gsavatar.fitting.keypoints import detect_format, load_joint_map, read_keypoints
 from gsavatar.fitting.triangulate import project_world, triangulate
+from gsavatar.geometry.lbs import pose_joints
 from gsavatar.utils.errors import SchemaError
-from gsavatar.utils.io import atomic_link, atomic_save_npz, atomic_write_json, read_npz, write_image
+from gsavatar.utils.io import atomic_link, atomic_save_npz, atomic_write_json, read_image, read_npz, write_image
 from gsavatar.utils.outdir import claim_output_dir
 from gsavatar.utils.progress import progress_bar
 
@@ -198,13 +201,6 @@ def fit_body(args: FitBody) -> dict:
 def overlay_picture(cap, cams, names, kp, tri, jm, res, frame: int, tile: int = 256) -> np.ndarray:
     """The fitted skeleton (white bones, blue joints) and the frame's detections (green: inlier, red: rejected)
     over each camera's image of ``frame``, tiled in a grid. -> [H, W, 3] float32 in [0, 1]"""
-    import cv2
-
-    import torch
-
-    from gsavatar.geometry.lbs import pose_joints
-    from gsavatar.utils.io import read_image
-
     with torch.no_grad():
         J = pose_joints(
             cap.rig,

@@ -18,7 +18,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from gsavatar.geometry.camera import undistort
+from gsavatar.geometry.camera import distort, undistort
 
 
 class Triangulation(NamedTuple):
@@ -57,8 +57,6 @@ def project_world(
     X: np.ndarray, Ks: np.ndarray, Rs: np.ndarray, Ts: np.ndarray, dists: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """World points [N, 3] into every camera -> (pixels [N, C, 2], depth [N, C])."""
-    from gsavatar.geometry.camera import distort
-
     pc = np.einsum("cij,nj->nci", Rs, X) + Ts[None]  # [N, C, 3]
     z = pc[..., 2]
     zs = np.where(np.abs(z) < 1e-9, 1e-9, z)

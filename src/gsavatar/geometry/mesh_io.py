@@ -13,6 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from gsavatar.utils.errors import SchemaError
+from gsavatar.utils.io import atomic_write_text
 from gsavatar.utils.paths import check_regular_file
 
 
@@ -121,8 +122,6 @@ def write_obj(
     face_uvs: np.ndarray | None = None,
 ) -> None:
     """Write a triangle OBJ atomically. vertices [V,3], faces [F,3] (0-based), uvs [T,2], face_uvs [F,3]."""
-    from gsavatar.utils.io import atomic_write_text
-
     lines = ["# gsavatar template"]
     lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in np.asarray(vertices, dtype=np.float64)]
     if uvs is not None and face_uvs is not None:

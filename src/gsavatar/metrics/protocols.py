@@ -23,6 +23,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from gsavatar.metrics.image import psnr, ssim
+from gsavatar.metrics.lpips import LPIPS
 
 AG_PATCH = 512
 """Side of the square LPIPS crop of the ``ag`` protocol (pixels)."""
@@ -104,8 +105,6 @@ def load_ag_lpips(device: torch.device | str, mode: str = "auto") -> tuple[dict[
     512 x 512 takes 5-15 s, more than rendering the view). A network whose weights are not installed is left
     out and named ``off (unavailable: ...)``.
     """
-    from gsavatar.metrics.lpips import LPIPS
-
     if mode not in ("auto", "on", "off"):
         raise ValueError(f"ag_lpips must be 'auto', 'on' or 'off', got {mode!r}")
     enabled = mode == "on" or (mode == "auto" and torch.device(device).type == "cuda")

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import tyro
 
+from gsavatar.data_schema.dataset import verify_dataset
 from gsavatar.prep.common import StageArgs
 from gsavatar.prep.configs import LocalizeConfig
 from gsavatar.prep.project_uv import ProjectConfig
@@ -73,8 +74,6 @@ class Verify:
     dataset: tyro.conf.Positional[Path]
 
     def run(self) -> None:
-        from gsavatar.data_schema.dataset import verify_dataset
-
         problems = verify_dataset(self.dataset)
         if problems:
             for p in problems:

@@ -23,6 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+from gsavatar.prep.localize import active_per_point
+from gsavatar.utils.io import write_image
+
 # RGB in [0, 1]
 GREY = (0.78, 0.78, 0.78)
 ORANGE = (1.0, 0.55, 0.0)
@@ -81,8 +84,6 @@ def _views(vertices: np.ndarray):
 def _render(
     pv, add_layers, vertices: np.ndarray, path: str | Path, window_size: tuple[int, int], zoom: float = 1.6
 ) -> Path:
-    from gsavatar.utils.io import write_image
-
     path = Path(path)
     views = _views(vertices)
     try:
@@ -167,8 +168,6 @@ def render_influence_figure(
     anchors. A Gaussian is active when any of its 3 interpolation anchors is. Gaussians:
     active red, inactive light blue; anchors: active orange, inactive blue. Returns ``path`` (PNG).
     """
-    from gsavatar.prep.localize import active_per_point
-
     slot = masks.slot_of(rig, param)
     anchor_on = masks.pose[:, slot]
     g = hierarchy.gaussians

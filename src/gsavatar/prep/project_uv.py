@@ -48,7 +48,9 @@ from gsavatar.data_schema.capture import Camera, Capture
 from gsavatar.data_schema.prepared import resize_face_mask
 from gsavatar.data_schema.template import Template
 from gsavatar.geometry.camera import distort, undistort
-from gsavatar.prep.uv_atlas import TexelMap
+from gsavatar.prep.uv_atlas import TexelMap, build_texel_map, ensure_uvs
+from gsavatar.utils.errors import SchemaError
+from gsavatar.utils.io import read_image, read_mask
 
 LUMA = (0.2126, 0.7152, 0.0722)
 """Rec. 709 luminance weights used as the texel 'intensity' of the median-band rule."""
@@ -494,6 +496,7 @@ class UVProjector:
         if key not in self._r2:
             self._r2[key] = _fov_r2_limit(cam)
         if quad:  # the z-buffer kernels read the foreground from the alpha channel of the mask's region of the image
+            # local: zbuffer imports numba (compiled kernels); every avatar-prep command imports this module
             from gsavatar.prep.zbuffer import region_rgba
 
             got = region_rgba(
@@ -524,6 +527,7 @@ class UVProjector:
         Views are consumed one at a time and rasterized as they arrive; their images are kept (the
         fused kernel samples all views per block of texels).
         """
+        # local: zbuffer imports numba (compiled kernels); every avatar-prep command imports this module
         from gsavatar.prep import zbuffer as zb
 
         zb.set_threads()
@@ -620,6 +624,7 @@ class UVProjector:
         """
         N = self.num_texels
         if self.config.visibility == "zbuffer":
+            # local: zbuffer imports numba (compiled kernels); every avatar-prep command imports this module
             from gsavatar.prep import zbuffer as zb
 
             zf = self._zbuffer_views(vertices, views, frame, occlusion)
@@ -697,6 +702,7 @@ class UVProjector:
         """:meth:`project` by the compiled kernels (``visibility="zbuffer"``)."""
         from numba.typed import List
 
+        # local: zbuffer imports numba (compiled kernels); every avatar-prep command imports this module
         from gsavatar.prep import zbuffer as zb
 
         cfg = self.config
@@ -794,8 +800,6 @@ def prepare_texel_map(
 ) -> tuple[Template, TexelMap]:
     """The template with UVs (xatlas unwrap if it has none, cached in ``cache_dir``) and its
     :class:`TexelMap` at ``config.tex_size`` with ``config.gutter_px`` seam dilation. Build once per run."""
-    from gsavatar.prep.uv_atlas import build_texel_map, ensure_uvs
-
     config = config or ProjectConfig(tex_size=512)
     if not config.tex_size:
         raise ValueError(
@@ -842,9 +846,6 @@ def iter_frame_views(
 
     ``uint8``: 8-bit image files come as their uint8 values (:func:`~gsavatar.utils.io.read_image`'s
     ``keep_uint8``; the projector samples them as ``x / 255``, the same numbers)."""
-    from gsavatar.utils.errors import SchemaError
-    from gsavatar.utils.io import read_image, read_mask
-
     for name in cams if cams is not None else list(capture.cameras):
         if name not in capture.cameras:
             raise KeyError(f"unknown camera {name!r}")
@@ -904,9 +905,6 @@ def check_mask_coverage(capture: Capture, cams: Sequence[str], max_frames: int =
     of them have between MIN_FOREGROUND and MAX_FOREGROUND foreground, the textures would be empty (or
     full of background): SchemaError naming the masks folder, with examples. Single odd views only warn.
     """
-    from gsavatar.utils.errors import SchemaError
-    from gsavatar.utils.io import read_mask
-
     frames = preflight_frames(capture.num_frames, max_frames)
     bad: list[str] = []
     n = 0

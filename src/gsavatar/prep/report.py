@@ -22,6 +22,8 @@ import numpy as np
 from gsavatar.data_schema import load_capture
 from gsavatar.data_schema.dataset import ShardReader, read_dataset_json, stage_dir
 from gsavatar.data_schema.prepared import load_gt_texture, resize_face_mask
+from gsavatar.prep.project_uv import ProjectConfig, UVProjector, load_frame_views
+from gsavatar.prep.stages import load_atlas, load_atlas_face_mask
 from gsavatar.utils.cli import run_reporting_errors
 from gsavatar.utils.io import atomic_write_json, write_image
 from gsavatar.utils.outdir import claim_output_dir
@@ -54,8 +56,6 @@ def build_report(
     frames = frames or reader.frames
     rows = []
     cap = load_capture(cap_root, check_files=True)
-    from gsavatar.prep.stages import load_atlas, load_atlas_face_mask
-
     fmask = load_atlas_face_mask(dataset)
     face = resize_face_mask(fmask, int(cfg["tex_size"])) if fmask is not None else None
 
@@ -88,9 +88,6 @@ def build_report(
 def _compare_mean(cap, dataset: Path, cfg: dict, frames: list[int], surface: np.ndarray) -> dict:
     """Re-project ``frames`` with both fusion rules; PSNR on texels seen by >= 2 and >= 3 views
     (a median can only out-vote a bad sample when at least 3 views saw the texel)."""
-    from gsavatar.prep.project_uv import ProjectConfig, UVProjector, load_frame_views
-    from gsavatar.prep.stages import load_atlas, load_atlas_face_mask
-
     tm, _, _ = load_atlas(dataset)
     fmask = load_atlas_face_mask(dataset)
     posed = ShardReader(stage_dir(dataset, "pose-template"))

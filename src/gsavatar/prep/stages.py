@@ -27,13 +27,26 @@ from gsavatar.prep.configs import (
     SamplePointsConfig,
     UvAtlasConfig,
 )
+from gsavatar.prep.figures import render_hierarchy_figure, render_influence_figure
 from gsavatar.prep.inputs import frame_inputs
+from gsavatar.prep.localize import build_localization
+from gsavatar.prep.pca import fit_pose_pca
+from gsavatar.prep.project_uv import (
+    UVProjector,
+    cameras_seeing,
+    check_mask_coverage,
+    prefetched_frame_views,
+    preflight_frames,
+)
+from gsavatar.prep.sample_points import build_hierarchy
+from gsavatar.prep.uv_atlas import TexelMap, build_texel_map, ensure_uvs
 from gsavatar.utils.io import atomic_save_npz, read_npz
 from gsavatar.utils.paths import output_path
 
 
 # --------------------------------------------------------------------------- pose-template
 def _pose_shard(capture_dir: str, frames: list[int]) -> dict[str, np.ndarray]:
+    # local: pose_template imports torch (geometry.lbs); prep.stages and prep.report load without it
     from gsavatar.prep.pose_template import pose_vertices
 
     return {"vertices": pose_vertices(load_capture(capture_dir, check_files=False), frames)}
@@ -78,8 +91,6 @@ def atlas_for_projection(cfg: ProjectUvConfig) -> UvAtlasConfig:
 
 
 def uv_atlas(args: StageArgs, cap: Capture, cfg: UvAtlasConfig, inputs: dict[str, str]) -> bool:
-    from gsavatar.prep.uv_atlas import build_texel_map, ensure_uvs
-
     root = Path(args.out)
     tex_size = cfg.tex_size or auto_tex_size(cap)
 
@@ -110,8 +121,6 @@ def uv_atlas(args: StageArgs, cap: Capture, cfg: UvAtlasConfig, inputs: dict[str
 
 def load_atlas(root: Path):
     """The texel map and UVs written by ``uv-atlas``."""
-    from gsavatar.prep.uv_atlas import TexelMap
-
     z = read_npz(
         stage_path(Path(root), "uv-atlas", "atlas.npz"), keys=("face", "bary", "size", "interior", "uvs", "face_uvs")
     )
@@ -128,8 +137,6 @@ def load_atlas_face_mask(root: Path) -> np.ndarray | None:
 def _project_shard(
     capture_dir: str, dataset: str, cfg_json: dict, cams: list[str], frames: list[int]
 ) -> dict[str, np.ndarray]:
-    from gsavatar.prep.project_uv import UVProjector, prefetched_frame_views
-
     cap = load_capture(capture_dir)
     tm, _, _ = load_atlas(Path(dataset))
     cfg = ProjectConfig(**{**cfg_json, "band": tuple(cfg_json["band"])})
@@ -153,8 +160,8 @@ def check_cameras_see_body(cap: Capture, cams: list[str], max_frames: int = 8) -
     """Refuse a calibration under which none of ``cams`` sees the posed body in any of up to
     ``max_frames`` evenly spaced frames (every camera behind or pointed away from it, e.g. R, T given
     camera-to-world): the textures would be empty. Single blind cameras are allowed (a warning)."""
+    # local: pose_template imports torch (geometry.lbs); prep.stages and prep.report load without it
     from gsavatar.prep.pose_template import pose_vertices
-    from gsavatar.prep.project_uv import cameras_seeing, preflight_frames
 
     frames = preflight_frames(cap.num_frames, max_frames)
     verts = pose_vertices(cap, frames).reshape(-1, 3)  # [n*V, 3] world, metres
@@ -173,8 +180,6 @@ def check_cameras_see_body(cap: Capture, cams: list[str], max_frames: int = 8) -
 
 def check_project_uv(cap: Capture, cfg: ProjectUvConfig) -> None:
     """Refuse, before any stage runs, a capture whose projected views would give empty textures."""
-    from gsavatar.prep.project_uv import check_mask_coverage
-
     cams = projected_cameras(cap, cfg.cameras)
     check_cameras_see_body(cap, cams)
     check_mask_coverage(cap, cams)
@@ -216,8 +221,6 @@ def project_uv(args: StageArgs, cap: Capture, cfg: ProjectUvConfig, inputs: dict
 
 # --------------------------------------------------------------------------- fit-pca
 def fit_pca(args: StageArgs, cap: Capture, cfg: FitPcaConfig, inputs: dict[str, str]) -> bool:
-    from gsavatar.prep.pca import fit_pose_pca
-
     root = Path(args.out)
     config = {
         "n_components": cfg.n_components,
@@ -257,16 +260,12 @@ def auto_point_counts(cap: Capture) -> dict[str, int]:
 
 
 def sample_points(args: StageArgs, cap: Capture, cfg: SamplePointsConfig, inputs: dict[str, str]) -> bool:
-    from gsavatar.prep.sample_points import build_hierarchy
-
     root = Path(args.out)
     given = {"anchors": cfg.anchors, "control": cfg.control, "gaussians": cfg.gaussians}
     auto = auto_point_counts(cap)
     counts = {k: v or auto[k] for k, v in given.items()}
 
     def produce() -> list[Path]:
-        from gsavatar.prep.uv_atlas import ensure_uvs
-
         print("[sample-points] " + ", ".join(f"{k} {v}" + ("" if given[k] else " (auto)") for k, v in counts.items()))
         # A template without UVs gets uv-atlas' unwrap (the same cached xatlas call, a function of the template
         # alone): the points need UVs in the layout the textures are projected into.
@@ -281,8 +280,6 @@ def sample_points(args: StageArgs, cap: Capture, cfg: SamplePointsConfig, inputs
 
 # --------------------------------------------------------------------------- localize
 def localize(args: StageArgs, cap: Capture, cfg: LocalizeConfig, inputs: dict[str, str]) -> bool:
-    from gsavatar.prep.localize import build_localization
-
     root = Path(args.out)
 
     def produce() -> list[Path]:
@@ -304,8 +301,6 @@ def localize(args: StageArgs, cap: Capture, cfg: LocalizeConfig, inputs: dict[st
             f"{int(masks.face.sum())} face anchors"
         )
         if cfg.figures:
-            from gsavatar.prep.figures import render_hierarchy_figure, render_influence_figure
-
             names = [p.name for p in cap.rig.params]
             param = cfg.figure_param if cfg.figure_param in names else names[0]
             files.append(Path(render_hierarchy_figure(cap.template, h, root / "localize" / "hierarchy.png")))

@@ -22,7 +22,7 @@ from typing import NamedTuple
 import numpy as np
 
 from gsavatar.data_schema.template import Template
-from gsavatar.utils.io import read_npz
+from gsavatar.utils.io import atomic_save_npz, read_npz
 
 _CHUNK = 1 << 22  # candidate (triangle, texel) pairs per vectorised batch
 _INSIDE_EPS = 1e-7  # barycentric tolerance: texel centres on an edge count as inside
@@ -114,8 +114,6 @@ def ensure_uvs(template: Template, cache_dir: str | Path | None = None, resoluti
                 pass  # corrupt/stale cache: recompute and overwrite
     uvs, face_uvs = unwrap_xatlas(template.vertices, template.faces, resolution=resolution)
     if path is not None:
-        from gsavatar.utils.io import atomic_save_npz
-
         atomic_save_npz(path, uvs=uvs, face_uvs=face_uvs)
     return dataclasses.replace(template, uvs=uvs, face_uvs=face_uvs, face_uv_mask=None)
 

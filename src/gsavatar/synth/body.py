@@ -31,6 +31,7 @@ import numpy as np
 from gsavatar.data_schema.rig import BODY_GROUPS, Joint, PoseParam, Rig, rig_from_json
 from gsavatar.data_schema.template import SKIN_TOP_K, Template
 from gsavatar.data_schema.template import topk_skin_weights as topk_weights  # moved down: importers use it too
+from gsavatar.utils.io import atomic_save_npz
 
 _CACHE_VERSION = 1
 K_SKIN = SKIN_TOP_K
@@ -193,8 +194,6 @@ def _load_cached(where: Path, key: str) -> tuple[Template, Rig] | None:
 
 
 def _save_cached(where: Path, key: str, t: Template, rig: Rig) -> None:
-    from gsavatar.utils.io import atomic_save_npz
-
     atomic_save_npz(
         where / f"{key}.npz",
         vertices=t.vertices,

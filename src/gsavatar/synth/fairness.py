@@ -18,6 +18,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from gsavatar.data_schema import load_capture
+from gsavatar.synth.render import pose_joint_positions
+from gsavatar.utils.cli import run_reporting_errors
+from gsavatar.utils.io import atomic_write_json, read_npz
+
 HISTORY = 10
 """Poses in the history window of the ``history`` regressor (the paper's N_b)."""
 ALPHAS = tuple(10.0**k for k in range(-3, 5))
@@ -199,10 +204,6 @@ def capture_fairness(capture) -> dict:
     """:func:`history_fairness` of a written synthetic capture (``gt/motion_states.npz``, motion, rig, splits)."""
     from pathlib import Path
 
-    from gsavatar.data_schema import load_capture
-    from gsavatar.synth.render import pose_joint_positions
-    from gsavatar.utils.io import read_npz
-
     capture = Path(capture)
     cap = load_capture(capture)
     z = read_npz(capture / "gt" / "motion_states.npz", keys=("levels",))
@@ -218,9 +219,6 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import json
     from pathlib import Path
-
-    from gsavatar.utils.cli import run_reporting_errors
-    from gsavatar.utils.io import atomic_write_json
 
     ap = argparse.ArgumentParser(
         description="How well pose alone / the pose history predict a synthetic "

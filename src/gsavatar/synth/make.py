@@ -39,12 +39,14 @@ from pathlib import Path
 import numpy as np
 
 from gsavatar.data_schema.capture import Camera, Motion, Split, write_capture_metadata
-from gsavatar.data_schema.rig import Rig
+from gsavatar.data_schema.rig import BODY_GROUPS, Rig
 from gsavatar.data_schema.template import save_template
+from gsavatar.motion.retarget import motion_from_bvh_file
 from gsavatar.synth.appearance import AppearanceModel
+from gsavatar.synth.body import build_anny_body, default_anny_cache
 from gsavatar.synth.cameras import camera_kind, make_dome, special_cameras
 from gsavatar.synth.fairness import history_fairness
-from gsavatar.synth.presets import SynthConfig
+from gsavatar.synth.presets import PRESET_HELP, PRESETS, SynthConfig
 from gsavatar.synth.render import (
     FrameScene,
     Shading,
@@ -56,7 +58,9 @@ from gsavatar.synth.render import (
     supersampled_rays,
     texel_visibility,
 )
+from gsavatar.utils.cli import run_reporting_errors
 from gsavatar.utils.io import atomic_save_npz, atomic_write_json, write_image
+from gsavatar.utils.outdir import claim_output_dir
 
 GT_FORMAT = "gsavatar-synth-gt"
 GT_VERSION = 1
@@ -66,8 +70,6 @@ GT_VERSION = 1
 def load_motion(cfg: SynthConfig, rig: Rig) -> Motion:
     """The BVH segment retargeted onto ``rig`` at ``cfg.fps`` with the ``cfg.root_xz`` treatment."""
     from scipy.ndimage import gaussian_filter1d
-
-    from gsavatar.motion.retarget import motion_from_bvh_file
 
     m = motion_from_bvh_file(cfg.bvh_path, rig, fps_out=cfg.fps, start=cfg.bvh_start, count=cfg.num_frames)
     if len(m.pose) != cfg.num_frames:
@@ -94,8 +96,6 @@ def coupling_slot(rig: Rig, pose: np.ndarray, train_frames: np.ndarray, name: st
     std = pose[train_frames].std(0)
     groups = rig.slot_groups()
     joint_of = [rig.params[i].joint for i in slots]
-    from gsavatar.data_schema.rig import BODY_GROUPS
-
     for pick in (
         lambda s: joint_of[s] == "RightHand",
         lambda s: BODY_GROUPS[groups[s]] == "right_hand",
@@ -214,8 +214,6 @@ def make_capture(
     overwrite: replace an existing capture in ``out_dir`` (its images/, masks/, gt/ and
         template/ folders are removed first); otherwise an existing capture is an error.
     """
-    from gsavatar.synth.body import build_anny_body
-
     out = Path(out_dir)
     if (out / "capture.json").exists() or (out / "images").exists():
         if not overwrite:
@@ -437,9 +435,6 @@ def main() -> int:
 
     import tyro
 
-    from gsavatar.synth.body import default_anny_cache
-    from gsavatar.synth.presets import PRESET_HELP, PRESETS
-
     args = tyro.extras.overridable_config_cli(
         {
             name: (PRESET_HELP[name], MakeArgs(out=Path(f"captures/synth_{name}"), config=cfg))
@@ -448,8 +443,6 @@ def main() -> int:
     )
     cfg = args.config
     cache = args.anny_cache or default_anny_cache()
-    from gsavatar.utils.cli import run_reporting_errors
-    from gsavatar.utils.outdir import claim_output_dir
 
     def run() -> None:
         claim_output_dir(args.out, "capture", args.force_out, "--force-out")

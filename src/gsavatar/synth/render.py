@@ -33,7 +33,7 @@ import numpy as np
 from gsavatar.data_schema.capture import Camera
 from gsavatar.data_schema.rig import Rig
 from gsavatar.data_schema.template import Template
-from gsavatar.geometry.camera import pixel_rays
+from gsavatar.geometry.camera import pixel_rays, project
 from gsavatar.synth.appearance import vertex_normals
 
 
@@ -106,7 +106,7 @@ def pose_vertices(
     root_translation [B, 3] m -> [B, V, 3] float32."""
     import torch
 
-    from gsavatar.geometry.lbs import RigTensors, lbs, skinning_transforms
+    from gsavatar.geometry.lbs import RigTensors, lbs, skinning_transforms  # local like torch: lbs imports torch
 
     pose = np.asarray(pose, np.float32)
     if pose.ndim != 2 or pose.shape[1] != rig.pose_dim:
@@ -135,7 +135,7 @@ def pose_joint_positions(
     axis-angle, root_translation [F, 3] m -> [F, J, 3] float64, metres."""
     import torch
 
-    from gsavatar.geometry.lbs import pose_joints
+    from gsavatar.geometry.lbs import pose_joints  # local like torch: geometry.lbs imports torch
 
     with torch.no_grad():
         return pose_joints(
@@ -257,8 +257,6 @@ def texel_visibility(
     face_id [N] triangle index, bary [N, 3] barycentrics (on the posed body of ``scene``);
     tol: metres the first hit may lie in front of the point. -> [N] bool
     """
-    from gsavatar.geometry.camera import project
-
     p = np.einsum("nk,nkc->nc", bary.astype(np.float64), scene.vertices[scene.faces[face_id]].astype(np.float64))
     proj = project(p, cam.K, cam.R, cam.T, cam.dist)
     uv = proj.pixels

@@ -19,10 +19,14 @@ from typing import Literal
 import torch
 import tyro
 
-from gsavatar.runs.config import TrainConfig
+from gsavatar.models.ply import export_frame_ply
+from gsavatar.runs.config import TrainConfig, model_config
+from gsavatar.runs.load import load_run
 from gsavatar.train.predictor_cli import Predictor
+from gsavatar.train.runs import evaluate_run, posed_output, render_turntable, train_and_evaluate
 from gsavatar.utils.cli import run_reporting_errors
 from gsavatar.utils.outdir import claim_output_file, record_output_file
+from gsavatar.utils.paths import add_output_root
 
 
 @dataclass
@@ -36,9 +40,6 @@ class Avatar(TrainConfig):
     ``config.json`` or ``metrics.jsonl`` is never overwritten). A run of ours is resumed without it."""
 
     def run(self) -> None:
-        from gsavatar.train.runs import train_and_evaluate
-        from gsavatar.utils.paths import add_output_root
-
         add_output_root(self.out)  # every write of this command stays in the run (cleared when it ends)
         cfg = TrainConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(TrainConfig)})
         train_and_evaluate(cfg, self.evaluate, force_out=self.force)
@@ -56,9 +57,6 @@ class Eval:
     """LPIPS (VGG and Alex) of the field's ``ag`` protocol: ``auto`` = on CUDA only (5-15 s per view on a CPU)."""
 
     def run_(self) -> None:
-        from gsavatar.train.runs import evaluate_run
-        from gsavatar.utils.paths import add_output_root
-
         add_output_root(self.run)  # eval images and metrics stay in the run
         print(json.dumps(evaluate_run(self.run, self.eval_frames, ag_lpips=self.ag_lpips), indent=1))
 
@@ -80,12 +78,6 @@ class Export:
     """Replace an existing ``out`` that is not a gsavatar PLY (refused otherwise)."""
 
     def run_(self) -> None:
-        from gsavatar.models.ply import export_frame_ply
-        from gsavatar.runs.config import model_config
-        from gsavatar.runs.load import load_run
-        from gsavatar.train.runs import posed_output
-        from gsavatar.utils.paths import add_output_root
-
         claim_output_file(self.out, "ply", self.force)
         add_output_root(Path(self.out).parent)  # the one file named, nothing beside it elsewhere
         net, scene, cfg, _ = load_run(self.run)
@@ -153,9 +145,6 @@ class Turntable:
     """Replace an existing ``out`` that is not a gsavatar video (refused otherwise)."""
 
     def run_(self) -> None:
-        from gsavatar.train.runs import render_turntable
-        from gsavatar.utils.paths import add_output_root
-
         claim_output_file(self.out, "video", self.force)
         add_output_root(Path(self.out).parent)
         print(f"wrote {render_turntable(self.run, self.out, self.frame, self.views, self.size)}")

@@ -7,10 +7,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gsavatar.metrics.image import psnr, ssim
+from gsavatar.metrics.protocols import ag_scores, on_white
 from gsavatar.models.batch import FrameBatch
 from gsavatar.models.net import AvatarNet
 from gsavatar.runs.views import render_views
 from gsavatar.train.data import ViewDataset
+from gsavatar.train.losses import erode_mask
 from gsavatar.utils.io import write_image
 from gsavatar.utils.paths import output_path
 
@@ -44,12 +47,7 @@ def evaluate_views(
     and ``ag_psnr``, ``ag_ssim``, ``ag_lpips_<net>``: the field's protocol (:mod:`gsavatar.metrics.protocols`;
     LPIPS with the ``ag_lpips`` nets).
     """
-    from gsavatar.metrics.protocols import ag_scores, on_white
-    from gsavatar.metrics.image import psnr, ssim
-
     net.eval()
-    from gsavatar.train.losses import erode_mask
-
     rows: dict[str, list[float]] = {"psnr": [], "psnr_fg": [], "psnr_interior": [], "ssim": []}
     if lpips is not None:
         rows["lpips"] = []

@@ -10,7 +10,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from gsavatar.train.predictor import PredictorTrainConfig
+from gsavatar.train.predictor import PredictorTrainConfig, train_predictor
 
 
 @dataclass(kw_only=True)
@@ -33,8 +33,6 @@ class Predictor(PredictorTrainConfig):
         return PredictorTrainConfig(**{k: getattr(self, k) for k in names})
 
     def run_(self) -> None:
-        from gsavatar.train.predictor import train_predictor
-
         if not Path(self.run).is_dir():
             raise FileNotFoundError(f"run directory {self.run} does not exist")
         res = train_predictor(self.run, self.train_config(), self.out, self.device, self.evaluate, force_out=self.force)

@@ -11,9 +11,12 @@ import torch
 
 from gsavatar.metrics.lpips import load_lpips
 from gsavatar.metrics.protocols import PROTOCOLS, load_ag_lpips
+from gsavatar.metrics.temporal import frame_dependence
 from gsavatar.models.batch import FrameBatch
+from gsavatar.models.config import SH_C0
 from gsavatar.models.encoder import sample_at_uv
 from gsavatar.models.net import AvatarNet
+from gsavatar.models.ply import export_frame_ply
 from gsavatar.runs.config import TrainConfig, check_train_config, model_config
 from gsavatar.runs.latents import mean_train_latent
 from gsavatar.runs.load import LoadedRun, load_run
@@ -93,9 +96,6 @@ def evaluate_run(run: Path, eval_frames: int = 8, loaded: LoadedRun | None = Non
 def run_frame_dependence(net: AvatarNet, scene, texture_source: str = "projected", num_frames: int = 24) -> dict | None:
     """Per-Gaussian colour (SH band 0) spread over training frames vs the ground-truth albedo's at the
     Gaussians' UVs (:func:`gsavatar.metrics.temporal.frame_dependence`); None without ``gt/textures``."""
-    from gsavatar.metrics.temporal import frame_dependence
-    from gsavatar.models.config import SH_C0
-
     uv = scene.hierarchy.gaussians.uv
     frames = select_frames(scene.capture.splits["train"].frames, num_frames)
     gt_dir = scene.capture.root / "gt" / "textures"
@@ -142,8 +142,6 @@ def posed_output(net: AvatarNet, scene, frame: int, sh_degree: int):
 
 
 def export_ply(run: Path, frame: int, out: Path) -> None:
-    from gsavatar.models.ply import export_frame_ply
-
     net, scene, cfg, _ = load_run(run)
     if not 0 <= frame < scene.capture.num_frames:
         raise ValueError(f"frame must be in [0, {scene.capture.num_frames}), got {frame}")

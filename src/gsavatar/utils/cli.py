@@ -13,6 +13,9 @@ import shutil
 import sys
 from collections.abc import Callable
 
+from gsavatar.utils.io import NO_SPACE_ERRNOS
+from gsavatar.utils.paths import clear_output_roots
+
 PATH_ERRORS = (FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError, PermissionError)
 """OS errors that mean a bad path on the command line (or in a file it names), not a bug."""
 
@@ -66,9 +69,6 @@ def run_reporting_errors(fn: Callable[[], object]) -> int:
     Ctrl-C: ``interrupted``, exit 130. The output-root registry of :mod:`gsavatar.utils.paths` and the
     resume hint are reset before and after, so one command never inherits another's.
     """
-    from gsavatar.utils.io import NO_SPACE_ERRNOS
-    from gsavatar.utils.paths import clear_output_roots
-
     clear_output_roots()
     _RESUME_HINT.clear()
     try:
