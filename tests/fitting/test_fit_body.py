@@ -246,3 +246,19 @@ def test_fit_body_bad_inputs_exit_non_zero_and_write_nothing(tiny_capture, tiny_
     assert run_fit(tiny_capture, empty, out) != 0
     assert "no detections" in capsys.readouterr().err and not out.exists()
     assert run_fit(tiny_capture, empty, tiny_capture) != 0  # never over the input
+
+
+def test_torch_projection_matches_the_numpy_camera_model():
+    import torch
+
+    from gsavatar.fitting.fit import _project
+    from gsavatar.geometry.camera import project
+
+    cams = ring_cameras(3, dist=True)
+    X = np.random.default_rng(0).uniform([-0.5, 0.2, -0.5], [0.5, 1.8, 0.5], (2, 7, 3))  # [F, M, 3]
+    Ks, Rs, Ts, ds = (torch.as_tensor(np.stack([getattr(c, a) for c in cams])) for a in ("K", "R", "T", "dist"))
+    pix, z = _project(torch.as_tensor(X), Ks, Rs, Ts, ds)
+    for c, cam in enumerate(cams):
+        ref = project(X.reshape(-1, 3), cam.K, cam.R, cam.T, cam.dist)
+        np.testing.assert_allclose(pix[:, c].reshape(-1, 2).numpy(), ref.pixels, atol=1e-9)
+        np.testing.assert_allclose(z[:, c].reshape(-1).numpy(), ref.depth, atol=1e-12)
