@@ -67,7 +67,7 @@ def errors(cap, fitted, jm) -> dict:
 
 
 def scaling(cap, jm, frames: list[int], views: list[int], seed: int = 0) -> list[dict]:
-    from gsavatar.fitting.fit import FitConfig, fit_sequence
+    from gsavatar.fitting.fit import FitConfig, fit_sequence, posed_keypoints
     from gsavatar.fitting.synthetic import synthetic_keypoints
     from gsavatar.fitting.triangulate import triangulate
     from gsavatar.synth.render import pose_joint_positions
@@ -75,11 +75,12 @@ def scaling(cap, jm, frames: list[int], views: list[int], seed: int = 0) -> list
     names = sorted(cap.cameras)
     m = cap.motion
     J = pose_joint_positions(cap.rig, m.pose, m.root_rotation, m.root_translation)
+    P = posed_keypoints(cap.rig, jm, m.pose, m.root_rotation, m.root_translation)
     rows = []
     for C in views:
         cams = [cap.cameras[n] for n in names[:C]]
         for F in frames:
-            kp = synthetic_keypoints(J[:F], cams, jm, seed=seed)
+            kp = synthetic_keypoints(P[:F], cams, jm, seed=seed)
             t0 = time.perf_counter()
             tri = triangulate(kp, cams)
             t1 = time.perf_counter()
@@ -101,13 +102,15 @@ def scaling(cap, jm, frames: list[int], views: list[int], seed: int = 0) -> list
     return rows
 
 
-def train_compare(true_cap: Path, fitted_cap: Path, work: Path) -> dict:
+def train_compare(true_cap: Path, fitted_cap: Path, work: Path, true_dataset: Path | None = None) -> dict:
     from gsavatar.prep.cli import main as prep
     from gsavatar.train.cli import main as train
 
     out = {}
     for name, cap in (("true_poses", true_cap), ("fitted_poses", fitted_cap)):
         ds, run = work / f"dataset_{name}", work / f"run_{name}"
+        if name == "true_poses" and true_dataset is not None:
+            ds = true_dataset  # prepared before from the same capture: `all` below only checks it
         if prep(["all", "--capture", str(cap), "--out", str(ds)]) != 0:
             raise SystemExit(f"avatar-prep all failed on {cap}")
         t0 = time.perf_counter()
@@ -128,27 +131,28 @@ def main() -> None:
     ap.add_argument("--work", type=Path, required=True, help="scratch folder (keypoints, fitted capture, runs)")
     ap.add_argument("--frames", type=int, nargs="+", default=[30, 60, 120])
     ap.add_argument("--views", type=int, nargs="+", default=[4, 8, 12])
+    ap.add_argument("--format", choices=["body25", "coco_wholebody"], default="body25")
     ap.add_argument("--train", action="store_true", help="also train tiny avatars on the true and the fitted poses")
     ap.add_argument("--no-scaling", action="store_true")
+    ap.add_argument("--true-dataset", type=Path, default=None, help="an existing dataset prepared from --capture")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
 
     from gsavatar.data_schema import load_capture
+    from gsavatar.fitting.fit import posed_keypoints
     from gsavatar.fitting.keypoints import load_joint_map
-    from gsavatar.fitting.synthetic import synthetic_keypoints, write_openpose
+    from gsavatar.fitting.synthetic import synthetic_keypoints, write_coco_wholebody, write_openpose
     from gsavatar.prep.cli import main as prep
-    from gsavatar.synth.render import pose_joint_positions
 
     cap = load_capture(a.capture)
-    jm = load_joint_map("body25", cap.rig)
+    jm = load_joint_map(a.format, cap.rig, template=cap.template)
     names = sorted(cap.cameras)
     m = cap.motion
     kdir, fitted = a.work / "keypoints", a.work / "fitted"
     if not kdir.exists():
-        J = pose_joint_positions(cap.rig, m.pose, m.root_rotation, m.root_translation)
-        write_openpose(
-            kdir, synthetic_keypoints(J, [cap.cameras[n] for n in names], jm), names, list(range(cap.num_frames))
-        )
+        P = posed_keypoints(cap.rig, jm, m.pose, m.root_rotation, m.root_translation)
+        write = write_openpose if a.format == "body25" else write_coco_wholebody
+        write(kdir, synthetic_keypoints(P, [cap.cameras[n] for n in names], jm), names, list(range(cap.num_frames)))
     t0 = time.perf_counter()
     if prep(["fit-body", "--capture", str(a.capture), "--keypoints", str(kdir), "--out", str(fitted)]) != 0:
         raise SystemExit("fit-body failed")
@@ -158,7 +162,7 @@ def main() -> None:
         "command": "PYTHONPATH=src OMP_NUM_THREADS=1 .venv/bin/python benchmarks/fit_body.py " + " ".join(sys.argv[1:]),
         "machine": f"{platform.system()} {platform.machine()}, CPU only, torch {torch.__version__}, "
         f"{torch.get_num_threads()} thread(s)",
-        "keypoints": {"noise_px": 2.0, "outlier_fraction": 0.1, "drop_fraction": 0.2, "format": "body25"},
+        "keypoints": {"noise_px": 2.0, "outlier_fraction": 0.1, "drop_fraction": 0.2, "format": a.format},
         "capture": str(a.capture),
         "frames": cap.num_frames,
         "views": len(names),
@@ -171,7 +175,7 @@ def main() -> None:
     if not a.no_scaling:
         res["scaling"] = scaling(cap, jm, a.frames, a.views)
     if a.train:
-        res["train"] = train_compare(a.capture, fitted, a.work)
+        res["train"] = train_compare(a.capture, fitted, a.work, a.true_dataset)
         print(json.dumps(res["train"]))
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from gsavatar.data_schema.capture import Camera
-from gsavatar.fitting.fit import FitConfig, fit_sequence
+from gsavatar.fitting.fit import FitConfig, fit_sequence, posed_keypoints
 from gsavatar.fitting.keypoints import load_joint_map, read_keypoint_file, read_keypoints
 from gsavatar.fitting.synthetic import synthetic_keypoints, write_openpose
 from gsavatar.fitting.triangulate import dlt, normalized_coords, project_world, triangulate
@@ -107,7 +107,7 @@ def test_fit_recovers_a_hand_made_pose(tmp_path):
     rr = np.tile([0.0, 0.4, 0.0], (F, 1))
     tr = np.tile([0.1, 0.9, -0.2], (F, 1))
     J = pose_joints(rig, *(torch.as_tensor(a, dtype=torch.float64) for a in (pose, rr, tr))).numpy()
-    kp = synthetic_keypoints(J, cams, jm, noise_px=0.0, outlier_fraction=0.0, drop_fraction=0.0)
+    kp = synthetic_keypoints(J[:, jm.joints], cams, jm, noise_px=0.0, outlier_fraction=0.0, drop_fraction=0.0)
     tri = triangulate(kp, cams)
     res = fit_sequence(rig, cams, kp, jm, tri.points, tri.inliers, FitConfig(w_pose=1e-4))
     Jf = pose_joints(
@@ -180,7 +180,13 @@ def tiny_fit_inputs(tiny_capture, tmp_path_factory):
     names = sorted(cap.cameras)
     m = cap.motion
     J = pose_joint_positions(cap.rig, m.pose, m.root_rotation, m.root_translation)
-    kp = synthetic_keypoints(J, [cap.cameras[n] for n in names], load_joint_map("body25", cap.rig), seed=1)
+    jm = load_joint_map("body25", cap.rig, template=cap.template)
+    kp = synthetic_keypoints(
+        posed_keypoints(cap.rig, jm, m.pose, m.root_rotation, m.root_translation),
+        [cap.cameras[n] for n in names],
+        jm,
+        seed=1,
+    )
     return cap, names, J, kp
 
 
@@ -262,3 +268,44 @@ def test_torch_projection_matches_the_numpy_camera_model():
         ref = project(X.reshape(-1, 3), cam.K, cam.R, cam.T, cam.dist)
         np.testing.assert_allclose(pix[:, c].reshape(-1, 2).numpy(), ref.pixels, atol=1e-9)
         np.testing.assert_allclose(z[:, c].reshape(-1).numpy(), ref.depth, atol=1e-12)
+
+
+def test_marker_keypoints_ride_rigidly_on_their_joint():
+    from types import SimpleNamespace
+
+    import torch
+
+    from gsavatar.fitting.fit import keypoint_points
+    from gsavatar.fitting.keypoints import marker_offset
+    from gsavatar.geometry.lbs import RigTensors, lbs, skinning_transforms
+
+    rig, _ = arm_setup()
+    heads = rig.heads().astype(np.float64)
+    j = [x.name for x in rig.joints].index("LeftHand")
+    # four vertices skinned fully to LeftHand, one to LeftArm; the hand's farthest along +y and along its bone
+    V = heads[j] + np.array(
+        [[0.0, 0.05, 0.0], [0.0, -0.02, 0.01], [0.08, 0.0, 0.0], [0.02, 0.0, 0.03], [0.0, 0.3, 0.0]]
+    )
+    si = np.array([[j, 0], [j, 0], [j, 0], [j, 0], [2, 0]])
+    sw = np.array([[1.0, 0.0]] * 4 + [[1.0, 0.0]])
+    tpl = SimpleNamespace(vertices=V, skin_indices=si, skin_weights=sw)
+    np.testing.assert_allclose(marker_offset(rig, tpl, j, "+y"), [0.0, 0.05, 0.0])  # not the LeftArm vertex
+    np.testing.assert_allclose(marker_offset(rig, tpl, j, "bone"), [0.08, 0.0, 0.0])  # the arm runs along +x
+    g = torch.Generator().manual_seed(0)
+    pose = 0.5 * torch.randn(3, rig.pose_dim, generator=g, dtype=torch.float64)
+    rr, tr = (
+        0.3 * torch.randn(3, 3, generator=g, dtype=torch.float64),
+        torch.randn(3, 3, generator=g, dtype=torch.float64),
+    )
+    off = torch.as_tensor(V[:1] - heads[j])
+    got = keypoint_points(RigTensors(rig, dtype=torch.float64), torch.tensor([j]), off, pose, rr, tr)[:, 0]
+    T = skinning_transforms(rig, pose, rr, tr)
+    ref = torch.stack(
+        [
+            lbs(torch.as_tensor(V[:1]), torch.as_tensor(si[:1]), torch.as_tensor(sw[:1]), T[i : i + 1]).reshape(-1, 3)[
+                0
+            ]
+            for i in range(3)
+        ]
+    )
+    torch.testing.assert_close(got, ref, atol=1e-12, rtol=0)

@@ -96,7 +96,7 @@ def fit_body(args: FitBody) -> dict:
     if args.shard_frames < 1:
         raise ValueError(f"--shard-frames must be >= 1, got {args.shard_frames}")
     fmt = detect_format(args.keypoints) if args.format == "auto" else args.format
-    jm = load_joint_map(fmt, cap.rig, args.joint_map)
+    jm = load_joint_map(fmt, cap.rig, args.joint_map, cap.template)
     names = sorted(cap.cameras)
     cams = [cap.cameras[n] for n in names]
     frames = list(range(cap.num_frames))

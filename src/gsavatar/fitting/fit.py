@@ -1,8 +1,9 @@
 """Fit the rig's pose, root motion to triangulated multi-view keypoints (batched over frames, torch).
 
 Per frame ``t`` the unknowns are the pose parameters ``theta_t`` [P] (radians, rig order), the root
-rotation ``r_t`` (axis-angle) and translation ``s_t``; forward kinematics (:func:`gsavatar.geometry.lbs.pose_joints`)
-gives the mapped joints ``J_t`` [M, 3]. The objective, summed over a shard of frames:
+rotation ``r_t`` (axis-angle) and translation ``s_t``; forward kinematics gives the keypoints' points ``J_t``
+[M, 3] (:func:`keypoint_points`: a joint's posed head, or a marker point riding rigidly on its joint). The
+objective, summed over a shard of frames:
 
 - reprojection, robust: ``sum_{c,m} w_{tcm} rho(|pi_c(J_tm) - u_tcm|)`` / ``sum w``, with ``pi_c`` the camera's
   projection (distortion included), ``w`` = detection confidence x triangulation inlier, and the
@@ -24,7 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from gsavatar.geometry.lbs import RigTensors, pose_joints
+from gsavatar.geometry.lbs import RigTensors, skinning_transforms
 from gsavatar.geometry.rotations import matrix_to_axis_angle
 
 
@@ -76,6 +77,30 @@ def _project(X: Tensor, Ks: Tensor, Rs: Tensor, Ts: Tensor, dists: Tensor) -> tu
     return torch.stack([u, v], -1), z
 
 
+def keypoint_points(
+    rig: RigTensors, joints: Tensor, offsets: Tensor, pose: Tensor, root_rotation: Tensor, root_translation: Tensor
+) -> Tensor:
+    """World points of a map's keypoints: each joint's skinning transform applied to its rest head plus the
+    keypoint's rest offset (a joint keypoint has offset 0: its posed head). [F, P], [F, 3], [F, 3] -> [F, M, 3]"""
+    T = skinning_transforms(rig, pose, root_rotation, root_translation)[:, joints]  # [F, M, 4, 4]
+    p = rig.heads.to(pose)[joints] + offsets.to(pose)  # [M, 3]
+    return (T[..., :3, :3] @ p[None, :, :, None])[..., 0] + T[..., :3, 3]
+
+
+def posed_keypoints(rig, joint_map, pose, root_rotation, root_translation) -> np.ndarray:
+    """:func:`keypoint_points` of a motion (numpy in and out, float64 inside). -> [F, M, 3]"""
+    d = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float64)
+    with torch.no_grad():
+        return keypoint_points(
+            RigTensors(rig, dtype=torch.float64),
+            torch.as_tensor(joint_map.joints),
+            d(joint_map.rest_offsets()),
+            d(pose),
+            d(root_rotation),
+            d(root_translation),
+        ).numpy()
+
+
 def geman_mcclure(sq: Tensor, sigma: float) -> Tensor:
     """``sigma^2 e^2 / (e^2 + sigma^2)`` of squared residuals ``sq``."""
     s2 = sigma * sigma
@@ -93,10 +118,13 @@ def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[np.ndarray,
     return R, cd - R @ cs
 
 
-def initial_root(rig, joints: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def initial_root(
+    rig, joints: np.ndarray, points: np.ndarray, offsets: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Root rotation (axis-angle) and translation per frame from the rest-pose torso joints (the mapped joints
     nearest the root: depth <= 2 in the tree, at least 3) to their triangulated points by Kabsch.
-    joints [M] rig joint indices, points [F, M, 3] (NaN: unset) -> ([F, 3], [F, 3]).
+    joints [M] rig joint indices, points [F, M, 3] (NaN: unset), offsets [M, 3] of marker keypoints from their
+    joints (None: 0) -> ([F, 3], [F, 3]).
     Frames with fewer than 3 points copy the nearest frame that has them (zeros if none has)."""
     F = points.shape[0]
     heads = rig.heads().astype(np.float64)
@@ -109,8 +137,9 @@ def initial_root(rig, joints: np.ndarray, points: np.ndarray) -> tuple[np.ndarra
     d = depth[joints]
     torso = d <= max(2, np.sort(d)[min(2, len(d) - 1)])
     torso |= d <= np.sort(d[~torso])[0] if (~torso).any() and torso.sum() < 3 else torso
-    joints, points = np.asarray(joints)[torso], points[:, torso]
-    rest = heads[joints]
+    off = np.zeros((len(joints), 3)) if offsets is None else np.asarray(offsets, np.float64)
+    joints, points, off = np.asarray(joints)[torso], points[:, torso], off[torso]
+    rest = heads[joints] + off
     rot, trans = np.zeros((F, 3)), np.zeros((F, 3))
     good = np.zeros(F, bool)
     for t in range(F):
@@ -163,7 +192,7 @@ def fit_sequence(
     )
     rt = RigTensors(rig, dtype=dt)
     if init is None:
-        rr0, rt0 = initial_root(rig, jt_idx, points[:, kp_idx])
+        rr0, rt0 = initial_root(rig, jt_idx, points[:, kp_idx], joint_map.rest_offsets())
         pose0 = np.zeros((F, rig.pose_dim))
     else:
         pose0, rr0, rt0 = init
@@ -171,13 +200,14 @@ def fit_sequence(
     rr = torch.tensor(rr0, dtype=dt, requires_grad=True)
     tr = torch.tensor(rt0, dtype=dt, requires_grad=True)
     jt = torch.as_tensor(jt_idx)
+    offsets = torch.as_tensor(joint_map.rest_offsets(), dtype=dt)
     norm2d = w.sum().clamp_min(1e-9)
     norm3d = wx.sum().clamp_min(1e-9)
     # 3D residuals in metres against reprojections in pixels: scale the 3D term to pixels with the mean focal length
     f2 = float((Ks[:, 0, 0] * Ks[:, 1, 1]).mean()) / float(Ts[:, 2].abs().mean().clamp_min(0.5)) ** 2
 
     def loss(with_pose: bool) -> Tensor:
-        J = pose_joints(rt, pose if with_pose else pose.detach(), rr, tr)[:, jt]  # [F, M, 3]
+        J = keypoint_points(rt, jt, offsets, pose if with_pose else pose.detach(), rr, tr)  # [F, M, 3]
         pix, z = _project(J, Ks, Rs, Ts, ds)
         sq = ((pix - uv) ** 2).sum(-1)
         l2d = (w * geman_mcclure(sq, c.sigma_px)).sum() / norm2d
@@ -209,7 +239,7 @@ def fit_sequence(
             if progress is not None:
                 progress(i + (c.root_steps if stage else 0), n)
     with torch.no_grad():
-        J = pose_joints(rt, pose, rr, tr)[:, jt]
+        J = keypoint_points(rt, jt, offsets, pose, rr, tr)
         pix, _ = _project(J, Ks, Rs, Ts, ds)
         err = ((pix - uv) ** 2).sum(-1).sqrt()  # [F, C, M]
         used = w > 0

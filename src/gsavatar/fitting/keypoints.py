@@ -48,13 +48,48 @@ class JointMap:
     """Rig joint index of each.  # [M] int64"""
     names: tuple[str, ...]
     """Keypoint names (for reports)."""
+    offsets: np.ndarray | None = None
+    """Rest-pose offset of each keypoint's point from its joint's head, metres; the point moves rigidly with
+    the joint (0 for a keypoint that is the joint itself; None: all 0).  # [M, 3] float64"""
+
+    def rest_offsets(self) -> np.ndarray:
+        """``offsets`` with None as zeros.  # [M, 3]"""
+        return np.zeros((len(self.joints), 3)) if self.offsets is None else self.offsets
 
 
-def load_joint_map(fmt: str, rig, path: str | Path | None = None) -> JointMap:
+EXTREMES = ("+x", "-x", "+y", "-y", "+z", "-z", "bone")
+"""How a marker keypoint picks its template point among the vertices skinned mostly to its joint: the one
+farthest along a template axis (+Y up, facing +Z, left on +X), or along the joint's bone (parent head -> head)."""
+
+
+def marker_offset(rig, template, joint: int, extreme: str) -> np.ndarray:
+    """Rest offset [3] from ``joint``'s head to the template vertex (dominantly skinned to it) that is farthest
+    along ``extreme`` (:data:`EXTREMES`); e.g. the nose is the Head's most forward vertex."""
+    V = np.asarray(template.vertices, np.float64)
+    si, sw = np.asarray(template.skin_indices), np.asarray(template.skin_weights)
+    own = si[np.arange(len(si)), sw.argmax(1)] == joint
+    if not own.any():
+        raise ValueError(f"no template vertex is skinned mostly to joint {rig.joints[joint].name!r}")
+    head = rig.heads()[joint].astype(np.float64)
+    if extreme == "bone":
+        parent = int(rig.parents()[joint])
+        axis = head - (rig.heads()[parent] if parent >= 0 else head - np.array([0.0, 1.0, 0.0]))
+    else:
+        axis = np.zeros(3)
+        axis["xyz".index(extreme[1])] = 1.0 if extreme[0] == "+" else -1.0
+    axis = axis / max(np.linalg.norm(axis), 1e-12)
+    pts = V[own]
+    return pts[np.argmax((pts - head) @ axis)] - head
+
+
+def load_joint_map(fmt: str, rig, path: str | Path | None = None, template=None) -> JointMap:
     """The keypoint -> joint map of ``fmt`` for ``rig`` (package data, or the JSON file ``path``).
 
-    File: ``{"format", "num_keypoints", "names": [...], "joints": {keypoint name: [rig joint candidates]}}``.
-    A keypoint whose candidates the rig lacks is left out; fewer than 4 usable keypoints is an error.
+    File: ``{"format", "num_keypoints", "names": [...], "joints": {keypoint name: entry}}``; an entry is a
+    list of rig joint candidates (the keypoint is that joint), or ``{"joints": [...], "extreme": "+z"}``: a
+    marker on the template, its point chosen by :func:`marker_offset` (needs ``template``; without one markers
+    are left out). A keypoint whose candidates the rig lacks is left out; fewer than 4 usable keypoints is an
+    error.
     """
     src = Path(path) if path is not None else None
     try:
@@ -78,24 +113,36 @@ def load_joint_map(fmt: str, rig, path: str | Path | None = None) -> JointMap:
             f"is a map for {obj.get('format')!r} with {len(obj['names'])} keypoints; {fmt} has {FORMATS[fmt]}",
         )
     rig_names = [j.name for j in rig.joints]
-    kp, jt, names = [], [], []
-    for name, cands in obj["joints"].items():
+    kp, jt, names, offs = [], [], [], []
+    for name, entry in obj["joints"].items():
         if name not in obj["names"]:
             raise SchemaError(where, f"joints.{name}", f"is not one of the {fmt} keypoint names")
-        if not isinstance(cands, list) or not all(isinstance(c, str) for c in cands):
-            raise SchemaError(where, f"joints.{name}", "must be a list of rig joint names")
-        hit = next((c for c in cands if c in rig_names), None)
-        if hit is not None:
-            kp.append(obj["names"].index(name))
-            jt.append(rig_names.index(hit))
-            names.append(name)
+        extreme = None
+        if isinstance(entry, dict):
+            extreme, entry = entry.get("extreme"), entry.get("joints")
+            if extreme not in EXTREMES:
+                raise SchemaError(where, f"joints.{name}.extreme", f"must be one of {EXTREMES}, got {extreme!r}")
+        if not isinstance(entry, list) or not all(isinstance(c, str) for c in entry):
+            raise SchemaError(where, f"joints.{name}", "must be a list of rig joint names (or {joints, extreme})")
+        hit = next((c for c in entry if c in rig_names), None)
+        if hit is None or (extreme is not None and template is None):
+            continue
+        j = rig_names.index(hit)
+        try:
+            off = np.zeros(3) if extreme is None else marker_offset(rig, template, j, extreme)
+        except ValueError as e:
+            raise SchemaError(where, f"joints.{name}", str(e)) from None
+        kp.append(obj["names"].index(name))
+        jt.append(j)
+        names.append(name)
+        offs.append(off)
     if len(kp) < 4:
         raise SchemaError(
             where,
             "joints",
             f"only {len(kp)} keypoints match joints of this rig (it has {rig_names[:6]}...); pass a --joint-map for it",
         )
-    return JointMap(fmt, np.asarray(kp, np.int64), np.asarray(jt, np.int64), tuple(names))
+    return JointMap(fmt, np.asarray(kp, np.int64), np.asarray(jt, np.int64), tuple(names), np.asarray(offs, np.float64))
 
 
 def _finite_array(v, file: Path, fld: str, shape_last: int) -> np.ndarray:

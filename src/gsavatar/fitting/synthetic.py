@@ -13,7 +13,7 @@ from gsavatar.fitting.triangulate import project_world
 
 
 def synthetic_keypoints(
-    joints: np.ndarray,
+    points: np.ndarray,
     cameras: list,
     joint_map: JointMap,
     noise_px: float = 2.0,
@@ -21,15 +21,16 @@ def synthetic_keypoints(
     drop_fraction: float = 0.2,
     seed: int = 0,
 ) -> np.ndarray:
-    """joints [F, J, 3] world -> keypoints [F, C, K, 3] of ``joint_map.format``: the mapped joints projected
+    """points [F, M, 3]: world positions of the map's keypoints (:func:`gsavatar.fitting.fit.posed_keypoints`)
+    -> keypoints [F, C, K, 3] of ``joint_map.format``: the points projected
     with Gaussian noise of ``noise_px`` (per axis), ``outlier_fraction`` of the detections moved to a uniform
     random spot in the image (confidence kept high: a detector's confident mistake), ``drop_fraction``
     dropped (confidence 0); the rest get confidences in [0.6, 1]. Unmapped keypoints stay 0."""
     rng = np.random.default_rng(seed)
-    F, C, K = joints.shape[0], len(cameras), FORMATS[joint_map.format]
+    F, C, K = points.shape[0], len(cameras), FORMATS[joint_map.format]
     out = np.zeros((F, C, K, 3))
     Ks, Rs, Ts, ds = (np.stack([getattr(c, a) for c in cameras]).astype(np.float64) for a in ("K", "R", "T", "dist"))
-    X = joints[:, joint_map.joints].reshape(-1, 3)
+    X = points.reshape(-1, 3)
     pix, z = project_world(X, Ks, Rs, Ts, ds)  # [F*M, C, 2]
     M = len(joint_map.joints)
     pix = pix.reshape(F, M, C, 2).transpose(0, 2, 1, 3) + rng.normal(0, noise_px, (F, C, M, 2))
@@ -58,3 +59,19 @@ def write_openpose(root: str | Path, keypoints: np.ndarray, cameras: list[str], 
                 [] if not (a[:, 2] > 0).any() else [{"person_id": [-1], "pose_keypoints_2d": a.reshape(-1).tolist()}]
             )
             (root / cam / f"{f:08d}_keypoints.json").write_text(json.dumps({"version": 1.3, "people": people}))
+
+
+def write_coco_wholebody(root: str | Path, keypoints: np.ndarray, cameras: list[str], frames: list[int]) -> None:
+    """keypoints [F, C, 133, 3] -> ``root/<camera>/<frame:08d>.json`` in MMPose's prediction layout (a list of
+    instances with ``keypoints`` [[x, y]] and ``keypoint_scores``; a view without detections gets ``[]``)."""
+    root = Path(root)
+    for c, cam in enumerate(cameras):
+        (root / cam).mkdir(parents=True, exist_ok=True)
+        for i, f in enumerate(frames):
+            a = keypoints[i, c]
+            inst = (
+                []
+                if not (a[:, 2] > 0).any()
+                else [{"keypoints": a[:, :2].tolist(), "keypoint_scores": a[:, 2].tolist()}]
+            )
+            (root / cam / f"{f:08d}.json").write_text(json.dumps(inst))
