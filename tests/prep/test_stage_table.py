@@ -51,7 +51,7 @@ def test_table_is_in_dependency_order_and_covers_every_stage():
             f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
             for f in dataclasses.fields(s.config)
         ), f"{s.name}: every option needs its (one) default"
-    assert list(COMMANDS) == ["synth", "import", *BY_NAME, "all", "verify"]  # capture sources first
+    assert list(COMMANDS) == ["synth", "import", "fit-body", *BY_NAME, "all", "verify"]  # capture sources first
 
 
 @pytest.mark.parametrize(
