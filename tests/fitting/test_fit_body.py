@@ -13,7 +13,7 @@ from gsavatar.data_schema.capture import Camera
 from gsavatar.fitting.fit import FitConfig, fit_sequence, posed_keypoints
 from gsavatar.fitting.keypoints import load_joint_map, read_keypoint_file, read_keypoints
 from gsavatar.fitting.synthetic import synthetic_keypoints, write_openpose
-from gsavatar.fitting.triangulate import dlt, normalized_coords, project_world, triangulate
+from gsavatar.fitting.triangulate import camera_arrays, dlt, normalized_coords, project_world, triangulate
 from gsavatar.geometry.camera import look_at
 from gsavatar.utils.errors import SchemaError
 
@@ -31,8 +31,7 @@ def ring_cameras(n: int, radius: float = 3.0, size: int = 256, dist: bool = Fals
 
 
 def pixels(X: np.ndarray, cams: list[Camera]) -> np.ndarray:
-    Ks, Rs, Ts, ds = (np.stack([getattr(c, a) for c in cams]) for a in ("K", "R", "T", "dist"))
-    return project_world(X, Ks, Rs, Ts, ds)[0]  # [N, C, 2]
+    return project_world(X, cams)[0]  # [N, C, 2]
 
 
 def test_dlt_two_views_closed_form():
@@ -262,7 +261,7 @@ def test_torch_projection_matches_the_numpy_camera_model():
 
     cams = ring_cameras(3, dist=True)
     X = np.random.default_rng(0).uniform([-0.5, 0.2, -0.5], [0.5, 1.8, 0.5], (2, 7, 3))  # [F, M, 3]
-    Ks, Rs, Ts, ds = (torch.as_tensor(np.stack([getattr(c, a) for c in cams])) for a in ("K", "R", "T", "dist"))
+    Ks, Rs, Ts, ds = (torch.as_tensor(a) for a in camera_arrays(cams))
     pix, z = _project(torch.as_tensor(X), Ks, Rs, Ts, ds)
     for c, cam in enumerate(cams):
         ref = project(X.reshape(-1, 3), cam.K, cam.R, cam.T, cam.dist)

@@ -210,8 +210,7 @@ def overlay_picture(cap, cams, names, kp, tri, jm, res, frame: int, tile: int = 
             ),
         )[0].numpy()
     parents = cap.rig.parents()
-    Ks, Rs, Ts, ds = (np.stack([getattr(c, a) for c in cams]).astype(np.float64) for a in ("K", "R", "T", "dist"))
-    pix, _ = project_world(J, Ks, Rs, Ts, ds)  # [J, C, 2]
+    pix, _ = project_world(J, cams)  # [J, C, 2]
     tiles = []
     for c, name in enumerate(names):
         img = np.ascontiguousarray(read_image(cap.image_path(name, frame))[..., :3], np.float32)

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from gsavatar.fitting.triangulate import camera_arrays
 from gsavatar.geometry.lbs import RigTensors, skinning_transforms
 from gsavatar.geometry.rotations import matrix_to_axis_angle
 
@@ -73,7 +74,7 @@ def _project(X: Tensor, Ks: Tensor, Rs: Tensor, Ts: Tensor, dists: Tensor) -> tu
     xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
     u = Ks[:, 0, 0][None, :, None] * xd + Ks[:, 0, 1][None, :, None] * yd + Ks[:, 0, 2][None, :, None]
-    v = Ks[:, 1, 1][None, :, None] * yd + Ks[:, 1, 2][None, :, None]
+    v = Ks[:, 1, 0][None, :, None] * xd + Ks[:, 1, 1][None, :, None] * yd + Ks[:, 1, 2][None, :, None]
     return torch.stack([u, v], -1), z
 
 
@@ -135,8 +136,7 @@ def initial_root(
     for j in range(len(parents)):
         depth[j] = 0 if parents[j] < 0 else depth[parents[j]] + 1
     d = depth[joints]
-    torso = d <= max(2, np.sort(d)[min(2, len(d) - 1)])
-    torso |= d <= np.sort(d[~torso])[0] if (~torso).any() and torso.sum() < 3 else torso
+    torso = d <= max(2, np.sort(d)[min(2, len(d) - 1)])  # depth <= 2, widened until it holds 3 keypoints
     off = np.zeros((len(joints), 3)) if offsets is None else np.asarray(offsets, np.float64)
     joints, points, off = np.asarray(joints)[torso], points[:, torso], off[torso]
     rest = heads[joints] + off
@@ -187,9 +187,7 @@ def fit_sequence(
     w = torch.as_tensor(w, dtype=dt)
     X = torch.as_tensor(np.nan_to_num(points[:, kp_idx]), dtype=dt)
     wx = torch.as_tensor(np.isfinite(points[:, kp_idx]).all(-1), dtype=dt)  # [F, M]
-    Ks, Rs, Ts, ds = (
-        torch.as_tensor(np.stack([getattr(cam, a) for cam in cameras]), dtype=dt) for a in ("K", "R", "T", "dist")
-    )
+    Ks, Rs, Ts, ds = (torch.as_tensor(a, dtype=dt) for a in camera_arrays(cameras))
     rt = RigTensors(rig, dtype=dt)
     if init is None:
         rr0, rt0 = initial_root(rig, jt_idx, points[:, kp_idx], joint_map.rest_offsets())

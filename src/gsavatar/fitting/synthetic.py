@@ -29,9 +29,7 @@ def synthetic_keypoints(
     rng = np.random.default_rng(seed)
     F, C, K = points.shape[0], len(cameras), FORMATS[joint_map.format]
     out = np.zeros((F, C, K, 3))
-    Ks, Rs, Ts, ds = (np.stack([getattr(c, a) for c in cameras]).astype(np.float64) for a in ("K", "R", "T", "dist"))
-    X = points.reshape(-1, 3)
-    pix, z = project_world(X, Ks, Rs, Ts, ds)  # [F*M, C, 2]
+    pix, z = project_world(points.reshape(-1, 3), cameras)  # [F*M, C, 2]
     M = len(joint_map.joints)
     pix = pix.reshape(F, M, C, 2).transpose(0, 2, 1, 3) + rng.normal(0, noise_px, (F, C, M, 2))
     conf = rng.uniform(0.6, 1.0, (F, C, M))

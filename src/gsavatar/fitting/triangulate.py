@@ -18,7 +18,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from gsavatar.geometry.camera import distort, undistort
+from gsavatar.geometry.camera import project, undistort
 
 
 class Triangulation(NamedTuple):
@@ -28,6 +28,26 @@ class Triangulation(NamedTuple):
     """Views used for each point.  # [F, K, C] bool"""
     error_px: np.ndarray
     """Mean reprojection error over the inlier views (NaN where unset).  # [F, K]"""
+
+
+class CameraArrays(NamedTuple):
+    """C cameras' calibration stacked (float64), the form the batched maths takes."""
+
+    K: np.ndarray
+    """Intrinsics.  # [C, 3, 3]"""
+    R: np.ndarray
+    """Rotations of ``cam_from_world``.  # [C, 3, 3]"""
+    T: np.ndarray
+    """Translations of ``cam_from_world``, metres.  # [C, 3]"""
+    dist: np.ndarray
+    """OpenCV distortion k1, k2, p1, p2, k3.  # [C, 5]"""
+
+
+def camera_arrays(cameras: list) -> CameraArrays:
+    """Stack :class:`~gsavatar.data_schema.capture.Camera` objects in order."""
+    return CameraArrays(
+        *(np.stack([getattr(c, a) for c in cameras]).astype(np.float64) for a in ("K", "R", "T", "dist"))
+    )
 
 
 def normalized_coords(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
@@ -53,21 +73,11 @@ def dlt(xy: np.ndarray, w: np.ndarray, P: np.ndarray) -> np.ndarray:
     return out
 
 
-def project_world(
-    X: np.ndarray, Ks: np.ndarray, Rs: np.ndarray, Ts: np.ndarray, dists: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """World points [N, 3] into every camera -> (pixels [N, C, 2], depth [N, C])."""
-    pc = np.einsum("cij,nj->nci", Rs, X) + Ts[None]  # [N, C, 3]
-    z = pc[..., 2]
-    zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
-    xn = pc[..., :2] / zs[..., None]
-    out = np.empty_like(xn)
-    for c in range(len(Ks)):
-        x = xn[:, c]
-        if np.any(dists[c]):
-            x = distort(x, dists[c])
-        out[:, c] = x @ Ks[c][:2, :2].T + Ks[c][:2, 2]
-    return out, z
+def project_world(X: np.ndarray, cameras: list) -> tuple[np.ndarray, np.ndarray]:
+    """World points [N, 3] into every camera (:func:`gsavatar.geometry.camera.project`)
+    -> (pixels [N, C, 2], depth [N, C])."""
+    proj = [project(X, c.K, c.R, c.T, c.dist) for c in cameras]
+    return np.stack([p.pixels for p in proj], 1), np.stack([p.depth for p in proj], 1)
 
 
 def triangulate(
@@ -79,10 +89,7 @@ def triangulate(
     cameras: C :class:`~gsavatar.data_schema.capture.Camera` in the keypoints' order.
     """
     F, C, K, _ = keypoints.shape
-    Ks = np.stack([c.K for c in cameras]).astype(np.float64)
-    Rs = np.stack([c.R for c in cameras]).astype(np.float64)
-    Ts = np.stack([c.T for c in cameras]).astype(np.float64)
-    dists = np.stack([c.dist for c in cameras]).astype(np.float64)
+    Ks, Rs, Ts, dists = camera_arrays(cameras)
     P = np.concatenate([Rs, Ts[..., None]], -1)  # [C, 3, 4]
     kp = keypoints.reshape(F, C, K, 3).transpose(0, 2, 1, 3).reshape(F * K, C, 3)  # [N, C, 3]
     uv, conf = kp[..., :2], np.where(kp[..., 2] >= min_confidence, kp[..., 2], 0.0)
@@ -90,7 +97,7 @@ def triangulate(
     N = len(kp)
 
     def inliers_of(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        pix, z = project_world(np.nan_to_num(X), Ks, Rs, Ts, dists)
+        pix, z = project_world(np.nan_to_num(X), cameras)
         err = np.linalg.norm(pix - uv, axis=-1)  # [N, C]
         ok = (conf > 0) & (z > 0) & (err < threshold_px) & np.isfinite(X).all(1, keepdims=True)
         return ok, err
