@@ -73,3 +73,12 @@ def test_ag_lpips_sees_the_square_crop_at_512():
     assert net.seen == (1, 3, 512, 512)
     assert math.isclose(s["lpips_vgg"], 0.5 * (10 / 20), rel_tol=2e-2)  # box 20 x 10 in a 20 x 20 square
     assert math.isnan(ag_scores(pred, gt, torch.zeros(1, H, W), {"vgg": net})["lpips_vgg"])
+
+
+def test_sequence_metrics_refuse_a_non_positive_ag_lpips_stride():
+    import pytest
+
+    from gsavatar.drive.metrics import SequenceMetrics
+
+    with pytest.raises(ValueError, match="ag_lpips_every"):
+        SequenceMetrics(ag_lpips_every=0)

@@ -205,7 +205,9 @@ class SequenceMetrics:
         None: black); ``ag_lpips``: its LPIPS nets, scored on frames ``t % ag_lpips_every == 0``."""
         self.lpips = lpips
         self.background = torch.zeros(3) if background is None else background.detach().float().cpu()
-        self.ag_lpips, self.ag_lpips_every = ag_lpips or {}, max(int(ag_lpips_every), 1)
+        if int(ag_lpips_every) < 1:
+            raise ValueError(f"ag_lpips_every must be >= 1 (every N-th frame), got {ag_lpips_every}")
+        self.ag_lpips, self.ag_lpips_every = ag_lpips or {}, int(ag_lpips_every)
         self.rows: list[dict] = []
         self._prev: dict[str, tuple] = {}
         self.worst: dict | None = None
