@@ -45,9 +45,8 @@ class Synth:
             load_capture(self.out)  # validates; an existing complete capture is reused, not rebuilt
             print(f"{self.out} already holds a valid capture; reusing it (--overwrite to rebuild)")
             return
-        claim_output_dir(
-            Path(self.out), "capture", self.force_out, "--force-out"
-        )  # not registered: it fills the anny cache too
+        # not registered as an output root: it fills the anny cache too
+        claim_output_dir(Path(self.out), "capture", self.force_out, "--force-out")
         make_capture(cfg, Path(self.out), self.anny_cache or default_anny_cache(), overwrite=self.overwrite)
         print(f"capture written to {self.out}")
         fair = Path(self.out) / "gt" / "fairness.json"
