@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
+import textwrap
 import time
 from pathlib import Path
 
@@ -47,6 +49,7 @@ ROWS = [
     ("Ours (encoder)", "run_ours", "encoder"),
     ("Ours (training-mean latent)", "run_ours", "train_mean"),
     ("Ours, tiny MLPs (64, 64) (encoder)", "run_ours_tinymodel", "encoder"),
+    ("Ours, a quarter of the Gaussians (encoder)", "run_ours_fewgauss", "encoder"),
     ("MMLPs-dagger", "run_mmlps", "predictor"),
     ("nRFGCA-dagger", "run_nrfgca", "predictor"),
     ("Ours w/o local pose (encoder)", "run_wo_local_pose", "encoder"),
@@ -157,7 +160,10 @@ RUN_DIRS = (
     "run_wo_local_pose",
     "run_wo_local_pca",
     "run_ours_tinymodel",
+    "run_ours_fewgauss",
 )
+SEED_RUNS = ("run_ours", "run_ours_seed1", "run_ours_seed2")  # Ours with seeds 0, 1, 2: the run-to-run spread
+SEED_MODES = ("encoder", "predictor", "predictor_encoder_init", "train_mean")
 
 
 def run_summary(run: Path) -> dict:
@@ -173,6 +179,7 @@ def run_summary(run: Path) -> dict:
     out["frame_dependence"] = fd
     cfg = json.loads((run / "config.json").read_text())["train"]
     out["texture_source"] = cfg.get("texture_source", "projected")
+    out["params"] = param_count(run)
     t = run / "timing.json"
     if t.exists():
         out.update(
@@ -181,9 +188,124 @@ def run_summary(run: Path) -> dict:
     return out
 
 
-def capture_tables(label: str, runs: Path, image_scale: float, params: list[str]) -> tuple[list[str], dict]:
+def param_count(run: Path) -> dict:
+    """Trainable parameters of a run's avatar (with its encoder and face embedding) and of its predictor."""
+    state = torch.load(run / "checkpoints" / "latest.pt", map_location="cpu", weights_only=False)
+    model = state.get("model", state)
+    out = {"avatar": int(sum(v.numel() for v in model.values() if torch.is_tensor(v) and v.is_floating_point()))}
+    pred = run / "predictor" / "latest.pt"
+    if pred.exists():
+        ps = torch.load(pred, map_location="cpu", weights_only=False)
+        ps = ps.get("model", ps)
+        out["predictor"] = int(sum(v.numel() for v in ps.values() if torch.is_tensor(v) and v.is_floating_point()))
+    return out
+
+
+def _mean_std(values: list[float]) -> dict:
+    """Mean, sample standard deviation and range of a few runs' numbers."""
+    v = torch.tensor(values, dtype=torch.float64)
+    std = float(v.std()) if len(values) > 1 else 0.0
+    return {"values": values, "mean": float(v.mean()), "std": std, "range": float(v.max() - v.min())}
+
+
+def seed_spread(runs: Path, image_scale: float) -> dict:
+    """Ours trained with the seeds of :data:`SEED_RUNS`: per mode the test PSNR inside the mask of each seed,
+    mean, sample std and range; the predictor's recovery likewise."""
+    per_mode: dict[str, list[float]] = {m: [] for m in SEED_MODES}
+    recovery, used = [], []
+    for rdir in SEED_RUNS:
+        run = runs / rdir
+        if not (run / "eval" / "metrics.json").exists() or not (run / "predictor" / "eval.json").exists():
+            continue
+        print(f"[results] {runs.name}: seed spread {rdir}", flush=True)
+        got = {m: drive_row(run, m, runs / "drive" / f"{rdir}_{m}", image_scale)["psnr_fg"] for m in SEED_MODES}
+        for m, v in got.items():
+            per_mode[m].append(v)
+        recovery.append((got["predictor"] - got["train_mean"]) / (got["encoder"] - got["train_mean"]))
+        used.append(rdir)
+    if len(used) < 2:
+        return {}
+    return {"runs": used, "psnr_fg": {m: _mean_std(v) for m, v in per_mode.items()}, "recovery": _mean_std(recovery)}
+
+
+def grid_picture(label: str, runs: Path, rows: list, out: Path) -> dict:
+    """One test frame seen by one held-out camera: the ground truth beside every row's render (the frames its
+    ``avatar-drive`` wrote, 8-bit PNG), PSNR inside the mask under each. The frame is where the encoder's render
+    differs most from the training-mean latent's (the appearance the latent carries), the camera the first test one.
+    -> the picture's record (frame, camera, per-row PSNR)."""
+    import cv2
+    import numpy as np
+
+    from gsavatar.data_schema import load_capture
+    from gsavatar.drive.metrics import load_ground_truth
+    from gsavatar.utils.io import read_image, write_image
+
+    drives = {lab: runs / "drive" / tag for lab, tag, _ in rows if (runs / "drive" / tag / "frames").is_dir()}
+    if not drives:
+        return {}
+    cap = load_capture(_capture_of(runs / "run_ours"))
+    cam = cap.splits["test"].cameras[0]
+    T = len(cap.splits["test"].frames)
+    enc, mean = drives.get("Ours (encoder)"), drives.get("Ours (training-mean latent)")
+    t = T // 2
+    if enc is not None and mean is not None:
+        diffs = [
+            np.abs(
+                read_image(enc / "frames" / cam / f"{i:06d}.png") - read_image(mean / "frames" / cam / f"{i:06d}.png")
+            ).mean()
+            if (enc / "frames" / cam / f"{i:06d}.png").exists()
+            else -1.0
+            for i in range(T)
+        ]
+        t = int(np.argmax(diffs))
+    frame = cap.splits["test"].frames[t]
+    gt, mask = load_ground_truth(cap, frame, [cam], 1.0, torch.zeros(3))[cam]
+    gt, mask = gt.numpy(), mask.numpy() > 0.5
+    ys, xs = np.nonzero(mask)
+    pad = int(0.1 * max(np.ptp(ys), np.ptp(xs))) + 2 if len(ys) else 0
+    y0, y1 = (max(0, ys.min() - pad), min(mask.shape[0], ys.max() + pad + 1)) if len(ys) else (0, mask.shape[0])
+    x0, x1 = (max(0, xs.min() - pad), min(mask.shape[1], xs.max() + pad + 1)) if len(ys) else (0, mask.shape[1])
+    H = max(256, 2 * (y1 - y0))
+
+    def panel(img: np.ndarray, lines: list[str]) -> np.ndarray:
+        a = (np.clip(img[y0:y1, x0:x1, :3], 0, 1) * 255).round().astype(np.uint8)
+        w = max(1, round(a.shape[1] * H / a.shape[0]))
+        a = cv2.resize(a, (w, H), interpolation=cv2.INTER_NEAREST)
+        if w < 210:  # room for the caption
+            a = np.pad(a, ((0, 0), ((210 - w) // 2, 210 - w - (210 - w) // 2), (0, 0)))
+        foot = np.full((18 * len(lines) + 8, a.shape[1], 3), 255, np.uint8)
+        for i, text in enumerate(lines):
+            cv2.putText(foot, text, (4, 18 * i + 16), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
+        return np.concatenate([a, foot], 0)
+
+    panels, scores = [panel(gt, ["ground truth", f"test frame {frame}, {cam}"])], {}
+    for lab, d in drives.items():
+        f = d / "frames" / cam / f"{t:06d}.png"
+        if not f.exists():
+            continue
+        img = read_image(f)[..., :3]
+        err = ((img - gt) ** 2)[mask].mean()
+        scores[lab] = float(10 * np.log10(1.0 / max(err, 1e-12)))
+        panels.append(panel(img, [*textwrap.wrap(lab, 30)[:3], f"{scores[lab]:.2f} dB (mask)"]))
+    h = max(p.shape[0] for p in panels)
+    panels = [np.pad(p, ((0, h - p.shape[0]), (0, 0), (0, 0)), constant_values=255) for p in panels]
+    per_row = 6
+    grid_rows = []
+    for i in range(0, len(panels), per_row):
+        chunk = panels[i : i + per_row]
+        width = sum(p.shape[1] for p in panels[:per_row])
+        line = np.concatenate(chunk, 1)
+        grid_rows.append(np.pad(line, ((0, 0), (0, width - line.shape[1]), (0, 0)), constant_values=255))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_image(out, np.concatenate(grid_rows, 0).astype(np.float32) / 255.0)
+    return {"figure": str(out), "capture_frame": int(frame), "test_index": t, "camera": cam, "psnr_fg": scores}
+
+
+def capture_tables(
+    label: str, runs: Path, image_scale: float, params: list[str], grid: Path | None = None, md_dir: Path = Path(".")
+) -> tuple[list[str], dict]:
     """Markdown lines and the JSON record of one capture's runs (``runs/run_*``)."""
-    rows = []
+    rows, tags = [], {}
     for row_label, rdir, mode, *pred in ROWS:
         run = runs / rdir
         pred = pred[0] if pred else "predictor"
@@ -194,6 +316,7 @@ def capture_tables(label: str, runs: Path, image_scale: float, params: list[str]
         print(f"[results] {label}: {row_label}", flush=True)
         tag = f"{rdir}_{mode}" + ("" if pred == "predictor" else f"_{pred}")
         rows.append((row_label, rdir, mode, drive_row(run, mode, runs / "drive" / tag, image_scale, pred)))
+        tags[row_label] = tag
     loc = []
     for rdir in ("run_ours", "run_mmlps", "run_nrfgca", "run_wo_local_pose", "run_wo_local_pca"):
         if (runs / rdir / "eval" / "metrics.json").exists():
@@ -211,15 +334,30 @@ def capture_tables(label: str, runs: Path, image_scale: float, params: list[str]
         f"background, LPIPS = {lp}; protocol `ag` (Animatable Gaussians / MMLPs): ground truth white outside its "
         f"mask, full image (docs/train.md; its LPIPS needs `--ag-lpips on`, off on this CPU box).",
         "",
-        "| method | PSNR | PSNR (mask) | SSIM | LPIPS | PSNR (ag) | SSIM (ag) | temporal error | drive views/s |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "Speed against error on the same rows: *params* of the avatar (with its encoder; + the predictor's where "
+        "the row uses it), *train min* and *steps/s* of the run's training (`timing.json`), *drive views/s* of "
+        "`avatar-drive` on this box; *train (mask)* is the run's `avatar-train eval` on training frames from the "
+        "held-out cameras with the encoder's latents (the same for every row of one run).",
+        "",
+        "| method | PSNR | PSNR (mask) | SSIM | LPIPS | PSNR (ag) | SSIM (ag) | temporal error | train (mask) "
+        "| params | train min | steps/s | drive views/s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     f = lambda m, k, fmt: format(m[k], fmt) if m.get(k) is not None else "-"  # noqa: E731
-    for row_label, _, _, m in rows:
+    for row_label, rdir, mode, m in rows:
+        run = summaries.get(rdir, {})
+        n = run.get("params", {})
+        n_params = n.get("avatar", 0) + (n.get("predictor", 0) if mode.startswith(("predictor", "pose_init")) else 0)
+        m["params"] = n_params or None
+        for k in ("seconds", "steps_per_s"):
+            m[f"train_{k}"] = run.get(k)
+        m["train_psnr_fg"] = run.get("train_frames_heldout_cams", {}).get("psnr_fg")
+        minutes = f"{run['seconds'] / 60:.1f}" if run.get("seconds") else "-"
         lines.append(
             f"| {row_label} | {m['psnr']:.2f} | {m['psnr_fg']:.2f} | {m['ssim']:.4f} | {f(m, 'lpips', '.4f')} | "
             f"{f(m, 'ag_psnr', '.2f')} | {f(m, 'ag_ssim', '.4f')} | {m['temporal_error']:.4f} | "
-            f"{m['fps_drive']:.2f} |"
+            f"{f(m, 'train_psnr_fg', '.2f')} | {f'{n_params / 1e6:.2f}M' if n_params else '-'} | {minutes} | "
+            f"{f(m, 'train_steps_per_s', '.2f')} | {m['fps_drive']:.2f} |"
         )
     if summaries:
         lines += [
@@ -261,8 +399,40 @@ def capture_tables(label: str, runs: Path, image_scale: float, params: list[str]
                 f"| {rdir} | {r['param']} | {r['outside_colour']:.5f} | {r['inside_colour']:.5f} | "
                 f"{r['outside_pos_mm']:.3f} | {r['inside_pos_mm']:.3f} | {r['region_fraction']:.1%} |"
             )
+    spread = seed_spread(runs, image_scale)
+    if spread:
+        lines += [
+            "",
+            f"Run-to-run spread of Ours ({', '.join(spread['runs'])}: seeds 0, 1, 2; the same recipe), test frames, "
+            "held-out cameras, PSNR inside the mask:",
+            "",
+            "| latent source | per seed (dB) | mean | std | range |",
+            "|---|---|---|---|---|",
+        ]
+        for mode, st in spread["psnr_fg"].items():
+            vals = ", ".join(f"{v:.2f}" for v in st["values"])
+            lines.append(f"| {mode} | {vals} | {st['mean']:.2f} | {st['std']:.2f} | {st['range']:.2f} |")
+        r = spread["recovery"]
+        lines.append(
+            f"| predictor recovery (zero init) | {', '.join(f'{v:.0%}' for v in r['values'])} | {r['mean']:.0%} | "
+            f"{r['std']:.0%} | {r['range']:.0%} |"
+        )
+        lines += _ranking_lines(rows, spread)
+    picture = grid_picture(label, runs, [(lab, tags[lab], None) for lab, *_ in rows], grid) if grid else {}
+    if picture:
+        link = os.path.relpath(picture["figure"], md_dir)
+        lines += [
+            "",
+            f"Every row on test frame {picture['capture_frame']} from {picture['camera']} (the frame where the "
+            f"encoder's render differs most from the training-mean latent's; PSNR inside the mask of the 8-bit "
+            f"frames `avatar-drive` wrote):",
+            "",
+            f"![every row on one test frame]({link})",
+        ]
     record = {
         "runs_dir": str(runs),
+        "seed_spread": spread,
+        "grid": picture,
         "runs": summaries,
         "drive_rows": [{"method": lab, "run": rdir, "mode": mode, **m} for lab, rdir, mode, m in rows],
         "locality": [{"run": rdir, **r} for rdir, r in loc],
@@ -288,6 +458,24 @@ def capture_tables(label: str, runs: Path, image_scale: float, params: list[str]
         record["history_fairness"] = {"pose_only": f["pose_only"], "history": f["history"]}
     lines += _summary_lines(record, mean)
     return lines, record
+
+
+RANKING = ("Ours (encoder)", "Ours (re-init. 30)", "Ours (predictor, encoder init)", "MMLPs-dagger")
+
+
+def _ranking_lines(rows: list, spread: dict) -> list[str]:
+    """The paper's ranking (encoder > re-init 30 > predictor > MMLPs-dagger) step by step, each difference next
+    to the seed spread: a difference counts as outside it when it exceeds the largest range of Ours' numbers
+    over the seeds (any latent source)."""
+    by = {lab: m["psnr_fg"] for lab, _, _, m in rows}
+    bound = max(st["range"] for st in spread["psnr_fg"].values())
+    out = ["", f"The paper's ranking against the spread (largest range over the seeds: {bound:.2f} dB):", ""]
+    for a, b in zip(RANKING, RANKING[1:]):
+        if a in by and b in by:
+            d = by[a] - by[b]
+            verdict = "outside the spread" if abs(d) > bound else "inside the spread"
+            out.append(f"- {a} - {b}: {d:+.2f} dB ({'holds' if d > 0 else 'reversed'}, {verdict})")
+    return out
 
 
 def _capture_of(run: Path) -> Path:
@@ -328,6 +516,10 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None, help="machine-readable copy (default: --out with .json)")
     ap.add_argument("--image-scale", type=float, default=1.0)
     ap.add_argument("--params", nargs="+", default=["RightHand.rz", "Neck.ry"])
+    ap.add_argument(
+        "--grid-dir", type=Path, default=None, help="where results_grid_LABEL.png go (default: beside --out)"
+    )
+    ap.add_argument("--study-minutes", type=float, default=None, help="wall time of the study, recorded")
     a = ap.parse_args()
     torch.set_num_threads(1)
     caps = []
@@ -359,10 +551,14 @@ def main() -> None:
             "device": "cpu",
         },
         "commit": commit,
+        "study_minutes": a.study_minutes,
         "captures": {},
     }
+    if a.study_minutes is not None:
+        lines += [f"The study (`bash scripts/study.sh`) took {a.study_minutes:.0f} minutes on this box.", ""]
     for label, runs in caps:
-        cl, cr = capture_tables(label, runs, a.image_scale, a.params)
+        grid = (a.grid_dir or a.out.parent) / f"results_grid_{label}.png"
+        cl, cr = capture_tables(label, runs, a.image_scale, a.params, grid, a.out.parent)
         lines += cl + [""]
         record["captures"][label] = cr
     notes = a.out.with_name("results_notes.md")

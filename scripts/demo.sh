@@ -4,8 +4,11 @@
 # -> train the avatar (CPU) -> evaluate on held-out cameras/frames -> turntable video
 # -> train the appearance predictor -> drive the held-out frames autoregressively (video + metrics)
 # -> one test frame rendered with the encoder's, the predictor's and the mean latent beside the ground truth.
-# STUDY=1 (opt-in, ~1.5 h more on 2 cores) also trains the oracle (ground-truth albedo into the encoder), the
-# baselines and the ablations on the same schedule and ends with the results table (docs/results.md layout).
+# STUDY=1 (opt-in, about 1.5 h more on 2 cores) also trains the oracle (ground-truth albedo into the encoder;
+# ORACLE=0 skips it), the baselines, the ablations, the speed-against-error rows (tiny MLPs, a quarter of the
+# Gaussians) and Ours with two more seeds (SEEDS="1 2") on the same schedule, and ends with the results table of
+# this capture ($OUT/results.md, .json, grid.png). scripts/study.sh runs it on `small` and `second` and writes
+# docs/results.md. SYNTH picks the synthetic capture's preset (default: PRESET, the training preset).
 # Re-running resumes: finished stages and trainings are skipped.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -14,9 +17,10 @@ export ANNY_CACHE_DIR=${ANNY_CACHE_DIR:-$PWD/.cache/anny}
 export VTK_DEFAULT_OPENGL_WINDOW=${VTK_DEFAULT_OPENGL_WINDOW:-vtkEGLRenderWindow}
 PRESET=${PRESET:-small}
 OUT=${OUT:-$PWD/out/demo}
+SYNTH=${SYNTH:-$PRESET}
 STUDY=${STUDY:-${BASELINES:-0}}
 if [ ! -f "$OUT/capture/capture.json" ]; then
-    .venv/bin/avatar-prep synth --out "$OUT/capture" --preset "$PRESET"
+    .venv/bin/avatar-prep synth --out "$OUT/capture" --preset "$SYNTH"
 fi
 .venv/bin/avatar-prep all --capture "$OUT/capture" --out "$OUT/dataset"
 .venv/bin/avatar-prep verify "$OUT/dataset"
@@ -43,7 +47,7 @@ if [ "$STUDY" = 1 ]; then
     # no-history ablation of the predictor: the current pose only (N_b = 1, no velocities / accelerations)
     .venv/bin/avatar-train predictor --run "$OUT/run_ours" --out "$OUT/run_ours/predictor_nohist" $PRED_FLAGS \
         --model.history 1 --model.no-velocities
-    train run_oracle --texture-source gt
+    [ "${ORACLE:-1}" = 1 ] && train run_oracle --texture-source gt
     train run_mmlps --variant mmlps_dagger
     train run_nrfgca --variant nrfgca_dagger
     train run_wo_local_pose --variant wo_local_pose
@@ -52,7 +56,17 @@ if [ "$STUDY" = 1 ]; then
         .venv/bin/avatar-train avatar --dataset "$OUT/dataset" --out "$OUT/run_ours_tinymodel" --preset tiny \
             --steps 1200 --correctives-step 200 --checkpoint-every 200
     fi
-    PYTHONPATH=src .venv/bin/python benchmarks/results_table.py --runs "$PRESET=$OUT" --out "$OUT/results.md"
+    # speed against error: the same capture resampled with a quarter of the Gaussians, the same schedule
+    G=$(.venv/bin/python -c "from gsavatar.data_schema.hierarchy import Hierarchy as H
+print(H.load('$OUT/dataset/sample_points/hierarchy.npz').num_gaussians // 4)")
+    .venv/bin/avatar-prep all --capture "$OUT/capture" --out "$OUT/dataset_fewgauss" --sample.gaussians "$G" \
+        --no-figures
+    .venv/bin/avatar-train avatar --dataset "$OUT/dataset_fewgauss" --out "$OUT/run_ours_fewgauss" --preset "$PRESET"
+    for s in ${SEEDS-1 2}; do  # run-to-run spread of Ours: the same recipe with other seeds
+        train "run_ours_seed$s" --seed "$s"
+        .venv/bin/avatar-train predictor --run "$OUT/run_ours_seed$s" $PRED_FLAGS --seed "$s"
+    done
+    PYTHONPATH=src .venv/bin/python benchmarks/results_table.py --runs "$SYNTH=$OUT" --out "$OUT/results.md"
 fi
 echo
 echo "UV textures (sharded, float16):   $OUT/dataset/project_uv/shard-*.npz  (manifest.json lists frames)"

@@ -170,3 +170,17 @@ def test_a_stale_upstream_record_is_recomputed_with_its_own_config(tiny_capture,
     assert planned(["localize"], ds, tiny_capture)["sample-points"] == SamplePointsConfig(
         anchors=30, control=counts["control"], gaussians=counts["gaussians"], seed=3
     )
+
+
+def test_all_passes_point_counts_to_sample_points_like_its_own_command(tmp_path):
+    """``avatar-prep all --sample.gaussians N`` (the results table's fewer-Gaussians dataset) gives sample-points
+    the config its own command gets from ``--gaussians N``; the other stages keep their defaults."""
+    flags = ["--sample.gaussians", "1234", "--sample.anchors", "40"]
+    everything = planned(["all", *flags], tmp_path / "ds")
+    assert everything["sample-points"] == SamplePointsConfig(anchors=40, gaussians=1234)
+    alone = planned(["sample-points", "--gaussians", "1234", "--anchors", "40"], tmp_path / "ds")
+    assert alone["sample-points"] == everything["sample-points"]
+    defaults = default_configs()
+    assert {k: v for k, v in everything.items() if k != "sample-points"} == {
+        k: v for k, v in defaults.items() if k != "sample-points"
+    }

@@ -18,7 +18,7 @@ import tyro
 
 from gsavatar.data_schema.dataset import verify_dataset
 from gsavatar.prep.common import StageArgs
-from gsavatar.prep.configs import LocalizeConfig
+from gsavatar.prep.configs import LocalizeConfig, SamplePointsConfig
 from gsavatar.prep.project_uv import ProjectConfig
 from gsavatar.prep.table import STAGES, Stage, config_of, default_configs, run_stages
 from gsavatar.importers.cli import Import  # the capture sources' commands: the one prep -> importers import
@@ -53,13 +53,17 @@ class All(StageArgs):
 
     project: ProjectConfig = field(default_factory=ProjectConfig)
     """Projection settings."""
+    sample: SamplePointsConfig = field(default_factory=SamplePointsConfig)
+    """Point counts of sample-points (e.g. ``--sample.gaussians 4000`` for a smaller-Gaussian-count dataset)."""
     figures: bool = LocalizeConfig.figures
     """Render the localization figures (pyvista off-screen)."""
 
     def configs(self) -> dict[str, object]:
-        """Every stage's defaults, with ``--project.*`` set on project-uv's and ``--figures`` on localize's."""
+        """Every stage's defaults, with ``--project.*`` set on project-uv's, ``--sample.*`` as sample-points' and
+        ``--figures`` on localize's."""
         c = default_configs()
         c["project-uv"] = dataclasses.replace(c["project-uv"], project=self.project)
+        c["sample-points"] = self.sample
         c["localize"] = dataclasses.replace(c["localize"], figures=self.figures)
         return c
 

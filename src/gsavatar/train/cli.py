@@ -39,7 +39,7 @@ class Avatar(TrainConfig):
     """Train into a non-empty ``out`` that is not a gsavatar run (refused otherwise, so a user's
     ``config.json`` or ``metrics.jsonl`` is never overwritten). A run of ours is resumed without it."""
 
-    def run(self) -> None:
+    def execute(self) -> None:
         add_output_root(self.out)  # every write of this command stays in the run (cleared when it ends)
         cfg = TrainConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(TrainConfig)})
         train_and_evaluate(cfg, self.evaluate, force_out=self.force)
@@ -56,7 +56,7 @@ class Eval:
     ag_lpips: Literal["auto", "on", "off"] = "auto"
     """LPIPS (VGG and Alex) of the field's ``ag`` protocol: ``auto`` = on CUDA only (5-15 s per view on a CPU)."""
 
-    def run_(self) -> None:
+    def execute(self) -> None:
         add_output_root(self.run)  # eval images and metrics stay in the run
         print(json.dumps(evaluate_run(self.run, self.eval_frames, ag_lpips=self.ag_lpips), indent=1))
 
@@ -77,7 +77,7 @@ class Export:
     force: bool = False
     """Replace an existing ``out`` that is not a gsavatar PLY (refused otherwise)."""
 
-    def run_(self) -> None:
+    def execute(self) -> None:
         claim_output_file(self.out, "ply", self.force)
         add_output_root(Path(self.out).parent)  # the one file named, nothing beside it elsewhere
         net, scene, cfg, _ = load_run(self.run)
@@ -105,7 +105,7 @@ class View:
     sh0_only: bool = False
     """Colour from SH band 0 only (view independent)."""
 
-    def run_(self) -> None:
+    def execute(self) -> None:
         import subprocess
         import sys
 
@@ -144,7 +144,7 @@ class Turntable:
     force: bool = False
     """Replace an existing ``out`` that is not a gsavatar video (refused otherwise)."""
 
-    def run_(self) -> None:
+    def execute(self) -> None:
         claim_output_file(self.out, "video", self.force)
         add_output_root(Path(self.out).parent)
         print(f"wrote {render_turntable(self.run, self.out, self.frame, self.views, self.size)}")
@@ -166,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
         args=argv,
     )
     try:
-        return run_reporting_errors(cmd.run if isinstance(cmd, Avatar) else cmd.run_)
+        return run_reporting_errors(cmd.execute)  # one method name: Eval, Predictor... have a `run` field
     finally:
         if torch.distributed.is_available() and torch.distributed.is_initialized():
             torch.distributed.destroy_process_group()

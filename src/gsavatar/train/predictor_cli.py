@@ -32,7 +32,7 @@ class Predictor(PredictorTrainConfig):
         names = PredictorTrainConfig.__dataclass_fields__
         return PredictorTrainConfig(**{k: getattr(self, k) for k in names})
 
-    def run_(self) -> None:
+    def execute(self) -> None:
         if not Path(self.run).is_dir():
             raise FileNotFoundError(f"run directory {self.run} does not exist")
         res = train_predictor(self.run, self.train_config(), self.out, self.device, self.evaluate, force_out=self.force)

@@ -1,0 +1,19 @@
+#!/usr/bin/env bash
+# The whole results table (docs/results.md, docs/results.json, docs/img/results_grid_*.png) from the current code:
+# the demo's study (STUDY=1: every row of the paper's tables 1 and 2, the speed-against-error rows, three seeds of
+# Ours on `small`) on the default capture `small` and on `second` (another seed, CMU motion and mechanisms), then
+# the table of both. Opt-in: about 2 h on the 2-core box with the two captures trained side by side (docs/results.md
+# states the measured time). Re-running resumes: finished trainings and drives are skipped.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup.sh
+mkdir -p out
+start=$(date +%s)
+STUDY=1 OUT=$PWD/out/demo bash scripts/demo.sh > out/study_small.log 2>&1 &
+small=$!
+STUDY=1 SYNTH=second PRESET=small ORACLE=0 SEEDS="" OUT=$PWD/out/cap2 bash scripts/demo.sh > out/study_second.log 2>&1 &
+second=$!
+wait $small || { echo "study of small failed: out/study_small.log" >&2; exit 1; }
+wait $second || { echo "study of second failed: out/study_second.log" >&2; exit 1; }
+PYTHONPATH=src .venv/bin/python benchmarks/results_table.py --runs small=out/demo second=out/cap2 \
+    --out docs/results.md --grid-dir docs/img --study-minutes $(( ($(date +%s) - start) / 60 ))
