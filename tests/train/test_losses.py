@@ -10,7 +10,7 @@ import torch
 from gsavatar.runs.config import LossWeights
 from gsavatar.train.losses import (
     cpt_smoothness_loss,
-    erode_mask,
+    min_filter_mask,
     kl_loss,
     l1_loss,
     opacity_loss,
@@ -38,24 +38,24 @@ def test_l1_hand_computed():
 def test_erode_mask_hand_computed():
     m = torch.zeros(1, 1, 5, 6)
     m[..., 1:5, 1:6] = 1.0  # touches bottom and right image borders
-    e = erode_mask(m, 1)
+    e = min_filter_mask(m, 1)
     expected = torch.zeros(1, 1, 5, 6)
     # 3x3 min-filter; outside the image does not erode -> rows 2..4, cols 2..5
     expected[..., 2:5, 2:6] = 1.0
     assert torch.equal(e, expected)
-    assert torch.equal(erode_mask(m, 0), m)
-    assert erode_mask(m > 0.5, 1).dtype == torch.float32
-    assert torch.equal(erode_mask(m > 0.5, 1), expected)
-    e3 = erode_mask(m, 3)  # 7x7 window: only pixels whose in-image window is all ones
+    assert torch.equal(min_filter_mask(m, 0), m)
+    assert min_filter_mask(m > 0.5, 1).dtype == torch.float32
+    assert torch.equal(min_filter_mask(m > 0.5, 1), expected)
+    e3 = min_filter_mask(m, 3)  # 7x7 window: only pixels whose in-image window is all ones
     assert e3.nonzero().tolist() == [[0, 0, 4, 4], [0, 0, 4, 5]]
     soft = m * 0.5
     soft[..., 3, 3] = 0.2
-    assert erode_mask(soft, 1)[0, 0, 3, 3].item() == pytest.approx(0.2)  # min-filter
-    assert erode_mask(soft, 1)[0, 0, 4, 5].item() == pytest.approx(0.5)
+    assert min_filter_mask(soft, 1)[0, 0, 3, 3].item() == pytest.approx(0.2)  # min-filter
+    assert min_filter_mask(soft, 1)[0, 0, 4, 5].item() == pytest.approx(0.5)
     with pytest.raises(ValueError, match="px"):
-        erode_mask(m, -1)
+        min_filter_mask(m, -1)
     with pytest.raises(ValueError, match="mask"):
-        erode_mask(m[0], 1)
+        min_filter_mask(m[0], 1)
 
 
 def test_opacity_loss_hand_computed():
@@ -200,7 +200,7 @@ def test_end_to_end_extremes_are_finite():
     logvar = torch.tensor([[-50.0] * 4, [50.0] * 4], requires_grad=True)
     terms = {
         "l1": l1_loss(pred, gt),
-        "opac": opacity_loss(alpha, erode_mask(mask, 1)),
+        "opac": opacity_loss(alpha, min_filter_mask(mask, 1)),
         "scale": scale_loss(scales, 0.5),
         "cpt": cpt_smoothness_loss(disp, nb),
         "kl": kl_loss(mu, logvar),

@@ -120,7 +120,7 @@ class TexelFusion(NamedTuple):
     """count > 0 (and outside the masked face region).  # [H, W] bool"""
 
 
-View = tuple[Camera, np.ndarray, "np.ndarray | None"]
+ImageView = tuple[Camera, np.ndarray, "np.ndarray | None"]
 """(camera, image [H,W,3] float [0,1], foreground mask [H,W] float [0,1] or None = all foreground)."""
 
 
@@ -467,7 +467,7 @@ class UVProjector:
         return P, Nrm
 
     def _view_ctx(
-        self, view: View, frame, keep_uint8: bool = False, quad: bool = False, slot: int = -1
+        self, view: ImageView, frame, keep_uint8: bool = False, quad: bool = False, slot: int = -1
     ) -> _ViewCtx | None:
         """Checked view: image [H*W, 3] (float32 in [0, 1]; uint8 kept as is when ``keep_uint8``), eroded
         foreground [H*W] bool, camera centre and distortion radius bound. None when the mask has no foreground.
@@ -521,7 +521,9 @@ class UVProjector:
         )
         return _ViewCtx(cam, img, fg.ravel(), np.asarray(cam.center, dtype=np.float64), self._r2[key])
 
-    def _zbuffer_views(self, vertices: np.ndarray, views: Iterable[View], frame, occlusion: bool = True) -> _ZFrame:
+    def _zbuffer_views(
+        self, vertices: np.ndarray, views: Iterable[ImageView], frame, occlusion: bool = True
+    ) -> _ZFrame:
         """Texel surface and every view's checked inputs and triangle-id buffer (:mod:`gsavatar.prep.zbuffer`).
 
         Views are consumed one at a time and rasterized as they arrive; their images are kept (the
@@ -586,7 +588,7 @@ class UVProjector:
             out.planes.append(planes)
         return out
 
-    def _collect(self, vertices: np.ndarray, views: Iterable[View], frame, occlusion: bool = True):
+    def _collect(self, vertices: np.ndarray, views: Iterable[ImageView], frame, occlusion: bool = True):
         """Per-view (rgb [N,3] float32, ok [N] bool) of every projected texel (None for views without
         foreground); the ``rays`` reference path."""
         P, Nrm = self._surface_soa(vertices, frame)
@@ -615,7 +617,7 @@ class UVProjector:
         return out
 
     def samples(
-        self, vertices: np.ndarray, views: Iterable[View], frame: int | str | None = None, occlusion: bool = True
+        self, vertices: np.ndarray, views: Iterable[ImageView], frame: int | str | None = None, occlusion: bool = True
     ) -> tuple[np.ndarray, np.ndarray]:
         """Per-view samples of every projected texel (diagnostics/tests).
 
@@ -671,7 +673,7 @@ class UVProjector:
             )
         return scene
 
-    def project(self, vertices: np.ndarray, views: Iterable[View], frame: int | str | None = None) -> TexelFusion:
+    def project(self, vertices: np.ndarray, views: Iterable[ImageView], frame: int | str | None = None) -> TexelFusion:
         """Fused UV texture of one frame. ``views`` may be a generator (one view's images in memory at a time).
 
         Raises ValueError naming ``frame`` for NaN/Inf posed vertices or mis-sized images.
@@ -698,7 +700,7 @@ class UVProjector:
         texture[~valid] = 0.0
         return TexelFusion(texture.reshape(S, S, 3), count.reshape(S, S), seen.reshape(S, S), valid.reshape(S, S))
 
-    def _project_zbuffer(self, vertices: np.ndarray, views: Iterable[View], frame) -> TexelFusion:
+    def _project_zbuffer(self, vertices: np.ndarray, views: Iterable[ImageView], frame) -> TexelFusion:
         """:meth:`project` by the compiled kernels (``visibility="zbuffer"``)."""
         from numba.typed import List
 
@@ -813,7 +815,7 @@ def project_uv(
     vertices: np.ndarray,
     faces: np.ndarray,
     texel_map: TexelMap,
-    views: Iterable[View],
+    views: Iterable[ImageView],
     config: ProjectConfig | None = None,
     face_uv_mask: np.ndarray | None = None,
     frame: int | str | None = None,
@@ -841,7 +843,7 @@ def cameras_seeing(vertices: np.ndarray, cameras: Sequence[Camera]) -> list[str]
 
 def iter_frame_views(
     capture: Capture, frame: int, cams: Sequence[str] | None = None, uint8: bool = False
-) -> Iterable[View]:
+) -> Iterable[ImageView]:
     """Yield (camera, image [H,W,3] float32, mask [H,W] float32) of one frame, one view at a time.
 
     ``uint8``: 8-bit image files come as their uint8 values (:func:`~gsavatar.utils.io.read_image`'s
@@ -927,7 +929,7 @@ def check_mask_coverage(capture: Capture, cams: Sequence[str], max_frames: int =
 
 def load_frame_views(
     capture: Capture, frame: int, cams: Sequence[str] | None = None, uint8: bool = False
-) -> list[View]:
+) -> list[ImageView]:
     """All views of one frame: list of (camera, image [H,W,3] float32 [0,1], mask [H,W] float32 [0,1])
     (``uint8``: as :func:`iter_frame_views`)."""
     return list(iter_frame_views(capture, frame, cams, uint8))
@@ -935,7 +937,7 @@ def load_frame_views(
 
 def prefetched_frame_views(
     capture: Capture, frames: Sequence[int], cams: Sequence[str] | None = None, uint8: bool = False, ahead: bool = True
-) -> Iterator[tuple[int, list[View]]]:
+) -> Iterator[tuple[int, list[ImageView]]]:
     """(frame, :func:`load_frame_views`) for each of ``frames``, reading the next frame in a background thread
     while the caller works on the current one (``ahead``; OpenCV's decoders and the z-buffer kernels release
     the GIL, so on two cores reading overlaps projection). At most two frames' views are in memory. A reading

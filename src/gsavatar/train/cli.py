@@ -88,7 +88,7 @@ class Export:
 
 
 @dataclass
-class View:
+class Viewer:
     """Open the browser viewer (viser, http://127.0.0.1:PORT) of a trained run: the avatar at rest, or driven
     by ``--motion``. Runs ``python -m gsavatar.drive.viewer`` (the viewer lives in the drive layer)."""
 
@@ -159,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
             "export": Export,
             "turntable": Turntable,
             "predictor": Predictor,
-            "view": View,
+            "view": Viewer,
         },
         prog="avatar-train",
         description=__doc__,

@@ -13,7 +13,7 @@ from gsavatar.models.batch import FrameBatch
 from gsavatar.models.net import AvatarNet
 from gsavatar.runs.views import render_views
 from gsavatar.train.data import ViewDataset
-from gsavatar.train.losses import erode_mask
+from gsavatar.train.losses import min_filter_mask
 from gsavatar.utils.io import write_image
 from gsavatar.utils.paths import output_path
 
@@ -69,7 +69,7 @@ def evaluate_views(
             rows.setdefault(f"ag_{k}", []).append(v)
         rows["psnr"].append(float(psnr(pred, gt)[0]))
         rows["psnr_fg"].append(float(psnr(pred, gt, mask=(b["mask"] > 0.5).expand_as(gt))[0]))
-        rows["psnr_interior"].append(float(psnr(pred, gt, mask=(erode_mask(b["mask"], 2) > 0.5).expand_as(gt))[0]))
+        rows["psnr_interior"].append(float(psnr(pred, gt, mask=(min_filter_mask(b["mask"], 2) > 0.5).expand_as(gt))[0]))
         rows["ssim"].append(float(ssim(pred, gt)[0]))
         if lpips is not None:
             rows["lpips"].append(float(lpips(pred, gt).mean()))

@@ -19,7 +19,7 @@ Choices the paper leaves open (stated here, used consistently):
   of a sample and averaged over the batch (the standard VAE convention; with the
   paper's 1e-6 weight the term is small but not negligible for large latents). The
   one KL of the code base: the encoder only returns ``mu`` and ``logvar``.
-* ``erode_mask``: a (2 px + 1)^2 square min-filter; pixels outside the image do
+* ``min_filter_mask``: a (2 px + 1)^2 square min-filter; pixels outside the image do
   *not* erode (foreground touching the image border stays foreground).
 """
 
@@ -63,8 +63,9 @@ def l1_loss(pred: Tensor, gt: Tensor) -> Tensor:
     return (_reduce_dtype(pred) - _reduce_dtype(gt)).abs().mean()
 
 
-def erode_mask(mask: Tensor, px: int) -> Tensor:
-    """Erode a foreground mask by ``px`` pixels (square (2 px + 1)^2 min-filter).
+def min_filter_mask(mask: Tensor, px: int) -> Tensor:
+    """Erode a foreground mask by ``px`` pixels (square (2 px + 1)^2 min-filter). Not prep's ``erode_mask``
+    (project_uv: threshold, then a kernel of side ``erode_px``), hence the other name.
 
     Implemented as ``1 - maxpool(1 - mask)``; max-pool pads with -inf, so the image
     border does not erode. Soft masks are min-filtered. Not differentiable in any
@@ -94,7 +95,7 @@ def opacity_loss(alpha: Tensor, eroded_mask: Tensor) -> Tensor:
 
     Args:
         alpha: Tensor  # [B, 1, H, W] accumulated opacity in [0, 1]
-        eroded_mask: Tensor  # [B, 1, H, W] in [0, 1] (see :func:`erode_mask`)
+        eroded_mask: Tensor  # [B, 1, H, W] in [0, 1] (see :func:`min_filter_mask`)
 
     Returns:
         Tensor  # [] scalar in [0, 1]
@@ -210,7 +211,7 @@ def total_loss(terms: dict[str, Tensor], w: LossWeights) -> tuple[Tensor, dict[s
 
 __all__ = [
     "cpt_smoothness_loss",
-    "erode_mask",
+    "min_filter_mask",
     "kl_loss",
     "l1_loss",
     "opacity_loss",

@@ -156,7 +156,7 @@ class Trainer:
         w = self.cfg.losses
         terms = {
             "l1": L.l1_loss(pred, gt),
-            "opac": L.opacity_loss(alpha, L.erode_mask(b["mask"], 3)),
+            "opac": L.opacity_loss(alpha, L.min_filter_mask(b["mask"], 3)),
             "scale": L.scale_loss(net_out.avatar.scales, self.mcfg.scale_max * 0.5),
             "cpt": L.cpt_smoothness_loss(net_out.avatar.ctrl_disp, self.neighbors),
         }
