@@ -13,13 +13,20 @@ objective, summed over a shard of frames:
 - joint limits: ``lambda_limit sum relu(|theta| - limit)^2``;
 - temporal smoothness: ``lambda_smooth |J_{t+1} - 2 J_t + J_{t-1}|^2`` (metres) and the same on ``theta``.
 
+Shape, where the body model has it (:class:`ShapeBasis`: rest joints linear in shape coefficients, e.g. SMPL-X's
+``J_regressor (v_template + shapedirs beta)``): one ``beta`` [B] per sequence joins the unknowns of the second
+stage, the rig's rest heads become ``heads + beta . dheads`` and ``lambda_shape |beta|^2`` (betas in the model's
+standard-deviation units) keeps unseen directions at the mean shape.
+
 Initialisation: the root transform per frame by Kabsch from the rest-pose joints to the triangulated torso
 joints, the pose at rest; then ``root_steps`` Adam steps on the root alone and ``steps`` on everything.
 """
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -56,10 +63,29 @@ class FitConfig:
     """Joint acceleration weight (per m^2, frames^-4)."""
     w_smooth_pose: float = 0.01
     """Pose acceleration weight (per rad^2)."""
+    w_shape: float = 1e-2
+    """Shape prior weight (per unit^2 of beta), when a :class:`ShapeBasis` is fitted."""
     min_confidence: float = 0.1
     """Detections below this confidence are ignored."""
     threshold_px: float = 15.0
     """Triangulation inlier threshold, pixels."""
+
+
+class ShapeBasis(NamedTuple):
+    """Rest joint positions linear in B shape coefficients: ``heads + einsum('b,bjk->jk', beta, dheads)``."""
+
+    heads: np.ndarray
+    """Rest heads at the mean shape (beta = 0), the rig's joint order.  # [J, 3] metres"""
+    dheads: np.ndarray
+    """Change of the heads per unit of each coefficient.  # [B, J, 3] metres"""
+
+
+def _shaped_rig(rt: RigTensors, shape: ShapeBasis, betas: Tensor) -> RigTensors:
+    """``rt`` with its rest heads replaced by the shape's at ``betas`` [B] (differentiable in ``betas``)."""
+    out = copy.copy(rt)
+    h0 = torch.as_tensor(shape.heads, dtype=betas.dtype)
+    out.heads = h0 + torch.einsum("b,bjk->jk", betas, torch.as_tensor(shape.dheads, dtype=betas.dtype))
+    return out
 
 
 def _project(X: Tensor, Ks: Tensor, Rs: Tensor, Ts: Tensor, dists: Tensor) -> tuple[Tensor, Tensor]:
@@ -168,14 +194,17 @@ def fit_sequence(
     config: FitConfig = FitConfig(),
     init: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     progress=None,
+    shape: ShapeBasis | None = None,
 ) -> dict[str, np.ndarray]:
     """Fit a shard of frames (module docstring).
 
     keypoints [F, C, K, 3]; joint_map: :class:`~gsavatar.fitting.keypoints.JointMap` (M used keypoints);
     points [F, K, 3], inliers [F, K, C] from :func:`gsavatar.fitting.triangulate.triangulate`. ``init``:
     (pose [F, P], root_rotation [F, 3], root_translation [F, 3]) to start from (default: Kabsch root, rest
-    pose). ``progress(i, n)`` is called every step. -> pose, root_rotation, root_translation (float32) and
-    ``reprojection_px`` [F] (mean over inlier detections of the fitted joints; NaN without any).
+    pose). ``progress(i, n)`` is called every step. ``shape``: fit one shape vector for the sequence too (its
+    ``heads`` replace the rig's; the Kabsch start uses the rig's). -> pose, root_rotation, root_translation
+    (float32), ``reprojection_px`` [F] (mean over inlier detections of the fitted joints; NaN without any) and,
+    with ``shape``, ``betas`` [B].
     """
     c = config
     dt = torch.float64
@@ -189,6 +218,14 @@ def fit_sequence(
     wx = torch.as_tensor(np.isfinite(points[:, kp_idx]).all(-1), dtype=dt)  # [F, M]
     Ks, Rs, Ts, ds = (torch.as_tensor(a, dtype=dt) for a in camera_arrays(cameras))
     rt = RigTensors(rig, dtype=dt)
+    betas = None
+    if shape is not None:
+        if shape.heads.shape != (rig.num_joints, 3) or shape.dheads.shape[1:] != (rig.num_joints, 3):
+            raise ValueError(
+                f"shape basis must be heads [{rig.num_joints}, 3] and dheads [B, {rig.num_joints}, 3], got "
+                f"{list(shape.heads.shape)} and {list(shape.dheads.shape)}"
+            )
+        betas = torch.zeros(shape.dheads.shape[0], dtype=dt, requires_grad=True)
     if init is None:
         rr0, rt0 = initial_root(rig, jt_idx, points[:, kp_idx], joint_map.rest_offsets())
         pose0 = np.zeros((F, rig.pose_dim))
@@ -204,8 +241,11 @@ def fit_sequence(
     # 3D residuals in metres against reprojections in pixels: scale the 3D term to pixels with the mean focal length
     f2 = float((Ks[:, 0, 0] * Ks[:, 1, 1]).mean()) / float(Ts[:, 2].abs().mean().clamp_min(0.5)) ** 2
 
+    def body() -> RigTensors:
+        return rt if betas is None else _shaped_rig(rt, shape, betas)
+
     def loss(with_pose: bool) -> Tensor:
-        J = keypoint_points(rt, jt, offsets, pose if with_pose else pose.detach(), rr, tr)  # [F, M, 3]
+        J = keypoint_points(body(), jt, offsets, pose if with_pose else pose.detach(), rr, tr)  # [F, M, 3]
         pix, z = _project(J, Ks, Rs, Ts, ds)
         sq = ((pix - uv) ** 2).sum(-1)
         l2d = (w * geman_mcclure(sq, c.sigma_px)).sum() / norm2d
@@ -221,10 +261,13 @@ def fit_sequence(
             )
             if F >= 3:
                 total = total + c.w_smooth_pose * ((pose[2:] - 2 * pose[1:-1] + pose[:-2]) ** 2).sum(-1).mean()
+            if betas is not None:
+                total = total + c.w_shape * (betas**2).sum()
         return total
 
     n = c.root_steps + c.steps
-    for stage, (params, steps) in enumerate((([rr, tr], c.root_steps), ([pose, rr, tr], c.steps))):
+    full = [pose, rr, tr] + ([] if betas is None else [betas])
+    for stage, (params, steps) in enumerate((([rr, tr], c.root_steps), (full, c.steps))):
         if steps <= 0:
             continue
         opt = torch.optim.Adam(params, lr=c.lr)
@@ -237,7 +280,7 @@ def fit_sequence(
             if progress is not None:
                 progress(i + (c.root_steps if stage else 0), n)
     with torch.no_grad():
-        J = keypoint_points(rt, jt, offsets, pose, rr, tr)
+        J = keypoint_points(body(), jt, offsets, pose, rr, tr)
         pix, _ = _project(J, Ks, Rs, Ts, ds)
         err = ((pix - uv) ** 2).sum(-1).sqrt()  # [F, C, M]
         used = w > 0
@@ -250,4 +293,5 @@ def fit_sequence(
         "root_rotation": rr.detach().numpy().astype(np.float32),
         "root_translation": tr.detach().numpy().astype(np.float32),
         "reprojection_px": rep.numpy(),
+        **({} if betas is None else {"betas": betas.detach().numpy().astype(np.float32)}),
     }

@@ -65,6 +65,18 @@ def shaped_vertices(model: SmplxModel, betas: np.ndarray) -> np.ndarray:
     return model.v_template.astype(np.float64) + model.shapedirs[:, :, : len(betas)].astype(np.float64) @ betas
 
 
+def smplx_shape_basis(model: SmplxModel, num_betas: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """Rest joints as a linear function of the first ``num_betas`` shape coefficients, for the body fit
+    (``gsavatar.fitting.fit.ShapeBasis``): ``J_regressor v_template`` [55, 3] and ``J_regressor shapedirs[..., b]``
+    per coefficient [B, 55, 3] (float64, metres)."""
+    if not 0 < num_betas <= model.num_betas:
+        raise ValueError(f"num_betas must be in [1, {model.num_betas}] for {model.path}, got {num_betas}")
+    jr = model.J_regressor.astype(np.float64)
+    heads = jr @ model.v_template.astype(np.float64)
+    dheads = np.einsum("jv,vkb->bjk", jr, model.shapedirs[:, :, :num_betas].astype(np.float64))
+    return heads, dheads
+
+
 def smplx_rig(model: SmplxModel, heads: np.ndarray) -> Rig:
     """The SMPL-X rig with rest joint positions ``heads`` [55, 3] (metres)."""
     joints = [
