@@ -29,6 +29,7 @@ import torch
 
 from gsavatar.drive.driver import DriveConfig, Driver, motion_inputs
 from gsavatar.drive.live import LiveGaussians
+from gsavatar.models.kernels import path_report, reset_paths
 from gsavatar.drive.motion import load_driving_motion
 from gsavatar.models import avatar as avatar_mod
 from gsavatar.models import gaussians as gm
@@ -177,8 +178,12 @@ def main() -> None:
     results = {"threads": torch.get_num_threads(), "mode": a.mode}
     d = Driver(a.run, DriveConfig(mode=a.mode, device="cpu", cameras="orbit"))
     motion = load_driving_motion(d.scene.capture.root, d.scene.capture.rig, d.fps)
+    reset_paths()
     results["run"] = measure(d, motion, a.frames, a.warmup, a.sh0_only, times)
+    results["run"]["kernel_paths"] = path_report()  # compiled or torch per fast kernel, and why
     report(f"{a.run} (preset {d.train_cfg.preset}, trained, mode {a.mode})", results["run"])
+    for name, p in results["run"]["kernel_paths"].items():
+        print(f"  path {name:<26s} compiled {p['compiled']:5d}  torch {p['torch']:5d}  {p['why_torch'] or ''}")
     if not a.no_paper:
         dp = paper_driver(a.paper_dataset or Path(d.scene.dataset), a.mode)
         results["paper"] = measure(dp, motion, max(a.frames // 4, 5), 2, a.sh0_only, times)

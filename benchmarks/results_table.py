@@ -190,14 +190,16 @@ def run_summary(run: Path) -> dict:
 
 def param_count(run: Path) -> dict:
     """Trainable parameters of a run's avatar (with its encoder and face embedding) and of its predictor."""
-    state = torch.load(run / "checkpoints" / "latest.pt", map_location="cpu", weights_only=False)
-    model = state.get("model", state)
-    out = {"avatar": int(sum(v.numel() for v in model.values() if torch.is_tensor(v) and v.is_floating_point()))}
-    pred = run / "predictor" / "latest.pt"
-    if pred.exists():
-        ps = torch.load(pred, map_location="cpu", weights_only=False)
-        ps = ps.get("model", ps)
-        out["predictor"] = int(sum(v.numel() for v in ps.values() if torch.is_tensor(v) and v.is_floating_point()))
+
+    def count(path: Path) -> int:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        modules = state.get("modules", state)
+        tensors = [v for m in modules.values() if isinstance(m, dict) for v in m.values() if torch.is_tensor(v)]
+        return int(sum(v.numel() for v in tensors if v.is_floating_point()))
+
+    out = {"avatar": count(run / "checkpoints" / "latest.pt")}
+    if (run / "predictor" / "latest.pt").exists():
+        out["predictor"] = count(run / "predictor" / "latest.pt")
     return out
 
 

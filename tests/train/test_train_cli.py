@@ -351,3 +351,54 @@ def test_checkpoint_of_an_older_model_config_resumes(tmp_path):
             ("model",),
             defaults={"model": dataclass_defaults(ModelConfig)},
         )
+
+
+def test_default_cpu_training_and_driving_take_the_compiled_paths(tiny_dataset, tmp_path):
+    """The fast kernels (models/kernels.py) decline silently to their torch twins when a precondition fails;
+    the path each took is recorded. With the default CPU configuration (no --deterministic) training and driving
+    must run compiled: timing.json lists the training's kernels, the drive's are read in process."""
+    from gsavatar.drive.cli import main as drive
+    from gsavatar.models.kernels import numba, path_report, reset_paths
+
+    if numba is None:
+        pytest.skip("numba missing: the torch paths are the only ones")
+    run = tmp_path / "run"
+    reset_paths()
+    args = ["avatar", "--dataset", str(tiny_dataset), "--preset", "tiny", "--lpips", "off", "--image-scale", "0.5"]
+    assert main([*args, "--steps", "2", "--no-evaluate", "--out", str(run)]) == 0
+    paths = json.loads((run / "timing.json").read_text())["kernel_paths"]
+    assert {"polar_rotation_fast", "sparse_interpolate_fast"} <= set(paths) or {
+        "posed_quaternion_fast",
+        "sparse_interpolate_fast",
+    } <= set(paths), paths
+    inference_only = {"pose_lbs_fast", "interpolated_deltas_fast"}  # by design: no backward, they decline in training
+    for name, p in paths.items():
+        if name in inference_only:
+            assert p["compiled"] == 0 and "requires_grad" in p["why_torch"], (name, p)
+        else:
+            assert p["torch"] == 0 and p["compiled"] > 0, (name, p)
+    reset_paths()
+    out = tmp_path / "drive"
+    assert (
+        drive(
+            [
+                "--run",
+                str(run),
+                "--motion",
+                str(json.loads((tiny_dataset / "dataset.json").read_text())["capture"]),
+                "--count",
+                "2",
+                "--mode",
+                "encoder",
+                "--out",
+                str(out),
+                "--image-scale",
+                "0.5",
+            ]
+        )
+        == 0
+    )
+    paths = path_report()
+    assert "pose_lbs_fast" in paths and "interpolated_deltas_fast" in paths, paths
+    for name, p in paths.items():
+        assert p["torch"] == 0 and p["compiled"] > 0, (name, p)

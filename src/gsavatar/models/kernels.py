@@ -19,11 +19,61 @@ devices, for autograd's double backward, and when numba is missing.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 from torch import Tensor
 
 from gsavatar.utils.compiled import numba, set_threads
+
+_PATHS: dict[str, dict] = {}
+"""Per fast path: how often the compiled kernel ran and how often its torch twin did, with the first reason."""
+
+
+def _why_not(args: tuple) -> str:
+    """Why a fast path declined: numba missing, or the inputs it saw (device, dtype, grad, layout)."""
+    if numba is None:
+        return "numba is not installed"
+    parts = []
+    for a in args:
+        if torch.is_tensor(a):
+            flags = [str(a.device), str(a.dtype).replace("torch.", ""), "x".join(map(str, a.shape)) or "scalar"]
+            flags += ["requires_grad"] * a.requires_grad + ["non-contiguous"] * (not a.is_contiguous())
+            flags += ["sparse"] * a.is_sparse
+            parts.append(" ".join(flags))
+    return "preconditions not met for inputs: " + "; ".join(parts) + f" (grad mode {torch.is_grad_enabled()})"
+
+
+def visible_path(name: str):
+    """Record which path a ``*_fast`` function took (it returns None when its torch twin must run instead):
+    :func:`path_report` lists them, the trainer writes it into ``timing.json``, so a change that breaks a
+    precondition shows up as a slower path instead of silently costing time."""
+
+    def wrap(fn):
+        @functools.wraps(fn)
+        def inner(*args, **kwargs):
+            out = fn(*args, **kwargs)
+            e = _PATHS.setdefault(name, {"compiled": 0, "torch": 0, "why_torch": None})
+            e["compiled" if out is not None else "torch"] += 1
+            if out is None and e["why_torch"] is None:
+                e["why_torch"] = _why_not(args)
+            return out
+
+        return inner
+
+    return wrap
+
+
+def path_report() -> dict[str, dict]:
+    """``{kernel: {"compiled": calls, "torch": calls, "why_torch": first reason or None}}`` since the last
+    :func:`reset_paths` (this process)."""
+    return {k: dict(v) for k, v in sorted(_PATHS.items())}
+
+
+def reset_paths() -> None:
+    """Forget the recorded paths (e.g. before one configuration's benchmark)."""
+    _PATHS.clear()
 
 
 if numba is not None:
@@ -344,6 +394,7 @@ class _SparseInterp(torch.autograd.Function):
         return torch.from_numpy(out), None
 
 
+@visible_path("sparse_interpolate_fast")
 def sparse_interpolate_fast(values: Tensor, matrix: Tensor) -> Tensor | None:
     """``out[b] = matrix @ values[b]`` for a coalesced sparse COO ``[N, M]`` matrix (constant: no gradient),
     compiled row loops forward and over the transpose's rows backward; None where it does not apply
@@ -402,6 +453,7 @@ PACKED_WIDTHS = (3, 3, 4, 3)
 """Leading widths of the packed Gaussian bases (position, scale, rotation, SH0; the higher SH bands follow)."""
 
 
+@visible_path("packed_bases")
 def packed_bases(position: Tensor, scale: Tensor, rotation: Tensor, sh0: Tensor, shn: Tensor) -> Tensor | None:
     """The ``[G, K, 13 + 3R]`` tensor the five bases are views of (side by side in this order, as
     :meth:`~gsavatar.models.avatar.GaussianAvatar.pack_bases_` lays them out), or None if they are not."""
@@ -421,6 +473,7 @@ def packed_bases(position: Tensor, scale: Tensor, rotation: Tensor, sh0: Tensor,
     return position.as_strided((G, K, D), (K * D, D, 1), base)
 
 
+@visible_path("interpolated_deltas_fast")
 def interpolated_deltas_fast(
     coeffs: Tensor,
     matrix: Tensor,
@@ -560,6 +613,7 @@ class _PolarRotation(torch.autograd.Function):
         return torch.from_numpy(out).to(grad.dtype).reshape(grad.shape), None, None
 
 
+@visible_path("polar_rotation_fast")
 def polar_rotation_fast(M: Tensor, tol: float, max_iters: int = 12) -> Tensor | None:
     """Orthogonal polar factor of 3x3 matrices with ``det > 0``, compiled; None where it does not apply
     (not CPU float32/float64, or numba missing: use the torch iteration).
@@ -607,6 +661,7 @@ class _PosedQuat(torch.autograd.Function):
         )
 
 
+@visible_path("posed_quaternion_fast")
 def posed_quaternion_fast(M: Tensor, quats: Tensor, tol: float, max_iters: int = 12) -> Tensor | None:
     """``matrix_to_quat(polar(M) @ quat_to_matrix(quats))`` fused and compiled; None where it does not apply
     (not CPU float32/float64, numba missing, or a blend with ``det <= min_det`` that needs the SVD path).
@@ -647,6 +702,7 @@ def posed_quaternion_fast(M: Tensor, quats: Tensor, tol: float, max_iters: int =
     return Q
 
 
+@visible_path("pose_lbs_fast")
 def pose_lbs_fast(
     transforms: Tensor,
     skin_matrix: Tensor,

@@ -18,6 +18,7 @@ from gsavatar.data_schema.prepared import load_scene
 from gsavatar.metrics.lpips import load_lpips
 from gsavatar.models.batch import FrameBatch
 from gsavatar.models.config import LearningRates, ModelConfig
+from gsavatar.models.kernels import path_report
 from gsavatar.models.net import build_net
 from gsavatar.runs.checkpoint import check_same_dataset, load_checkpoint, resume_hint, save_checkpoint
 from gsavatar.runs.config import TrainConfig, model_config, resolve, to_json
@@ -247,5 +248,7 @@ class Trainer:
                 "invocations": int(prev["invocations"]) + 1,
                 "threads": torch.get_num_threads(),
                 "device": str(self.device),
+                # which path each fast kernel took in this invocation (models/kernels.py: compiled or torch, why)
+                "kernel_paths": path_report(),
             },
         )
