@@ -153,12 +153,15 @@ def test_pose_masks_match_the_pre_refactor_rule(parts, name):
 def test_fingerprints_of_the_code_before_the_refactor(parts):
     # Stored from commit 0fdce94 (tests/avatar_variants.py), float64: outputs and gradients of every variant in
     # training / eval mode, with and without correctives, at SH degree 1 and 0. Float64 sums agree across
-    # machines far below any real change of the model (a wrong basis, mask or PCA moves them by >1e-3).
+    # machines far below any real change of the model (a wrong basis, mask or PCA moves them by >1e-3). Not to
+    # 1e-9: on a fresh set-up (an AVX-512 FP16 Xeon, unpinned numpy 2.4.6 / numba 0.68.1; 2026-12-03) ctrl_basis'
+    # gradient moved by 9e-8 relative at the commit that stored it (cause not isolated: CPU or versions); 1e-6
+    # keeps three decades of margin below a real change.
     want = json.loads((DATA / "variants_before_pose_heads.json").read_text())
     got = fingerprints(parts)
     assert got.keys() == want.keys()
     for k in want:
-        assert got[k] == pytest.approx(want[k], rel=1e-9, abs=1e-12), k
+        assert got[k] == pytest.approx(want[k], rel=1e-6, abs=1e-9), k
 
 
 # --------------------------------------------------------------------------- one table

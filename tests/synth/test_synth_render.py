@@ -436,7 +436,9 @@ def test_tiny_capture_matches_snapshot(tiny_capture):
             np.testing.assert_allclose(
                 v,
                 z[k],
-                atol=1e-3,
+                # the 8x8 thumbnail: a few silhouette pixels move between set-ups (4e-3 on a fresh AVX-512 FP16 Xeon
+                # with unpinned numpy 2.4.6 at the snapshot's own commit; cause not isolated), averages stay 1e-3
+                atol=1e-2 if k == "down8_frame0" else 1e-3,
                 err_msg=f"{k} differs from the snapshot; if the change is intended, regenerate (see module docstring)",
             )
 
