@@ -239,19 +239,23 @@ def seed_spread(runs: Path, image_scale: float) -> dict:
     }
 
 
-def grid_picture(label: str, runs: Path, rows: list, out: Path) -> dict:
+def grid_picture(runs: Path, drive_tags: dict[str, str], out: Path) -> dict:
     """One test frame seen by one held-out camera: the ground truth beside every row's render (the frames its
-    ``avatar-drive`` wrote, 8-bit PNG), PSNR inside the mask under each. The frame is where the encoder's render
-    differs most from the training-mean latent's (the appearance the latent carries), the camera the first test one.
-    -> the picture's record (frame, camera, per-row PSNR)."""
+    ``avatar-drive`` wrote into ``runs/drive/TAG``, 8-bit PNG), PSNR inside the mask under each. The frame is where
+    the encoder's render differs most from the training-mean latent's (the appearance the latent carries), the
+    camera the first test one. ``drive_tags``: row label -> drive folder. -> the picture's record."""
     import cv2
     import numpy as np
 
     from gsavatar.data_schema import load_capture
+    from gsavatar.drive.compare import body_box
     from gsavatar.drive.metrics import load_ground_truth
+    from gsavatar.metrics.image import psnr
     from gsavatar.utils.io import read_image, write_image
 
-    drives = {lab: runs / "drive" / tag for lab, tag, _ in rows if (runs / "drive" / tag / "frames").is_dir()}
+    drives = {
+        lab: runs / "drive" / tag for lab, tag in drive_tags.items() if (runs / "drive" / tag / "frames").is_dir()
+    }
     if not drives:
         return {}
     cap = load_capture(_capture_of(runs / "run_ours"))
@@ -271,11 +275,8 @@ def grid_picture(label: str, runs: Path, rows: list, out: Path) -> dict:
         t = int(np.argmax(diffs))
     frame = cap.splits["test"].frames[t]
     gt, mask = load_ground_truth(cap, frame, [cam], 1.0, torch.zeros(3))[cam]
-    gt, mask = gt.numpy(), mask.numpy() > 0.5
-    ys, xs = np.nonzero(mask)
-    pad = int(0.1 * max(np.ptp(ys), np.ptp(xs))) + 2 if len(ys) else 0
-    y0, y1 = (max(0, ys.min() - pad), min(mask.shape[0], ys.max() + pad + 1)) if len(ys) else (0, mask.shape[0])
-    x0, x1 = (max(0, xs.min() - pad), min(mask.shape[1], xs.max() + pad + 1)) if len(ys) else (0, mask.shape[1])
+    y0, y1, x0, x1 = body_box(mask)
+    gt_b, mask_b = gt.permute(2, 0, 1)[None], (mask > 0.5)[None, None]
     H = max(256, 2 * (y1 - y0))
 
     def panel(img: np.ndarray, lines: list[str]) -> np.ndarray:
@@ -289,23 +290,21 @@ def grid_picture(label: str, runs: Path, rows: list, out: Path) -> dict:
             cv2.putText(foot, text, (4, 18 * i + 16), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
         return np.concatenate([a, foot], 0)
 
-    panels, scores = [panel(gt, ["ground truth", f"test frame {frame}, {cam}"])], {}
+    panels, scores = [panel(gt.numpy(), ["ground truth", f"test frame {frame}, {cam}"])], {}
     for lab, d in drives.items():
         f = d / "frames" / cam / f"{t:06d}.png"
         if not f.exists():
             continue
         img = read_image(f)[..., :3]
-        err = ((img - gt) ** 2)[mask].mean()
-        scores[lab] = float(10 * np.log10(1.0 / max(err, 1e-12)))
+        scores[lab] = float(psnr(torch.from_numpy(img).permute(2, 0, 1)[None], gt_b, mask=mask_b)[0])
         panels.append(panel(img, [*textwrap.wrap(lab, 30)[:3], f"{scores[lab]:.2f} dB (mask)"]))
     h = max(p.shape[0] for p in panels)
     panels = [np.pad(p, ((0, h - p.shape[0]), (0, 0), (0, 0)), constant_values=255) for p in panels]
     per_row = 6
+    width = sum(p.shape[1] for p in panels[:per_row])
     grid_rows = []
     for i in range(0, len(panels), per_row):
-        chunk = panels[i : i + per_row]
-        width = sum(p.shape[1] for p in panels[:per_row])
-        line = np.concatenate(chunk, 1)
+        line = np.concatenate(panels[i : i + per_row], 1)
         grid_rows.append(np.pad(line, ((0, 0), (0, width - line.shape[1]), (0, 0)), constant_values=255))
     out.parent.mkdir(parents=True, exist_ok=True)
     write_image(out, np.concatenate(grid_rows, 0).astype(np.float32) / 255.0)
@@ -434,7 +433,7 @@ def capture_tables(
         else:
             lines.append("| predictor recovery (zero init) | the encoder gains < 0.1 dB: undefined | - | - | - |")
         lines += _ranking_lines(rows, spread)
-    picture = grid_picture(label, runs, [(lab, tags[lab], None) for lab, *_ in rows], grid) if grid else {}
+    picture = grid_picture(runs, tags, grid) if grid else {}
     if picture:
         link = os.path.relpath(picture["figure"], md_dir)
         lines += [

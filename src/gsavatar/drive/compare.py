@@ -25,6 +25,7 @@ from gsavatar.drive.driver import DriveConfig, Driver, motion_inputs
 from gsavatar.drive.metrics import load_ground_truth
 from gsavatar.drive.motion import load_driving_motion
 from gsavatar.metrics.image import psnr
+from gsavatar.metrics.protocols import mask_bbox
 from gsavatar.runs.latents import mean_train_latent
 from gsavatar.runs.load import load_run
 from gsavatar.utils.cli import run_reporting_errors
@@ -48,6 +49,18 @@ class CompareArgs:
     """Image downscale factor."""
     force: bool = False
     """Replace an existing ``out`` (or its JSON) that is not a gsavatar figure (refused otherwise)."""
+
+
+def body_box(mask: torch.Tensor, margin: float = 0.1) -> tuple[int, int, int, int]:
+    """``(y0, y1, x0, x1)`` of ``mask > 0.5`` [H, W] widened by ``margin`` of its longer side + 2 px, clipped to
+    the image; the whole image if the mask is empty. The crop of the figures that show a body."""
+    box = mask_bbox(mask)
+    H, W = mask.shape[-2:]
+    if box is None:
+        return 0, H, 0, W
+    y0, y1, x0, x1 = box
+    pad = int(margin * max(y1 - 1 - y0, x1 - 1 - x0)) + 2
+    return max(0, y0 - pad), min(H, y1 + pad), max(0, x0 - pad), min(W, x1 + pad)
 
 
 def _panel(img: torch.Tensor, height: int, text: str, min_width: int = 220) -> np.ndarray:
@@ -117,13 +130,7 @@ def compare(args: CompareArgs) -> dict:
         raise ValueError(f"frame must be in [0, {T}), got {t}")
     gt_img, gt_mask = load_ground_truth(cap, motion.gt.frames[t], [cam], args.image_scale, d.bg.cpu())[cam]
     m = (gt_mask > 0.5)[None, None].expand(1, 3, *gt_mask.shape)
-    ys, xs = torch.nonzero(gt_mask > 0.5, as_tuple=True)
-    if len(ys):  # crop every panel to the body's box (+10% margin): the body covers a tenth of the image
-        pad = int(0.1 * max(int(ys.max() - ys.min()), int(xs.max() - xs.min()))) + 2
-        y0, y1 = max(0, int(ys.min()) - pad), min(gt_mask.shape[0], int(ys.max()) + pad + 1)
-        x0, x1 = max(0, int(xs.min()) - pad), min(gt_mask.shape[1], int(xs.max()) + pad + 1)
-    else:
-        y0, y1, x0, x1 = 0, gt_mask.shape[0], 0, gt_mask.shape[1]
+    y0, y1, x0, x1 = body_box(gt_mask)  # every panel cropped to it: the body covers a tenth of the image
     H = max(384, 2 * (y1 - y0))
     panels = [_panel(gt_img[y0:y1, x0:x1], H, f"ground truth (frame {motion.gt.frames[t]})")]
     scores = {}

@@ -248,7 +248,7 @@ class Trainer:
                 "invocations": int(prev["invocations"]) + 1,
                 "threads": torch.get_num_threads(),
                 "device": str(self.device),
-                # which path each fast kernel took in this invocation (models/kernels.py: compiled or torch, why)
+                # which path each fast kernel took in this process so far (models/kernels.py: compiled or torch, why)
                 "kernel_paths": path_report(),
             },
         )
