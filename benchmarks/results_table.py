@@ -185,9 +185,33 @@ def run_summary(run: Path) -> dict:
     t = run / "timing.json"
     if t.exists():
         out.update(
-            {k: v for k, v in json.loads(t.read_text()).items() if k in ("steps", "seconds", "steps_per_s", "threads")}
+            {
+                k: v
+                for k, v in json.loads(t.read_text()).items()
+                if k in ("steps", "seconds", "steps_per_s", "threads", "code", "commits")
+            }
         )
+    pe = run / "predictor" / "eval.json"
+    if pe.exists():  # the code that trained the run's predictor
+        out["predictor_code"] = json.loads(pe.read_text()).get("code")
     return out
+
+
+def _provenance_line(summaries: dict) -> str:
+    """Which commits trained the rows' runs (their ``timing.json``, predictors' ``eval.json``), so a reader can
+    check that nothing in the table is older than the code it describes."""
+    commits: dict[str, list[str]] = {}
+    for rdir, s in summaries.items():
+        for c in s.get("commits") or ["unrecorded"]:
+            commits.setdefault(c, []).append(rdir)
+        pc = (s.get("predictor_code") or {}).get("commit")
+        if pc:
+            commits.setdefault(pc, []).append(f"{rdir}/predictor")
+    if not commits:
+        return "Training commits: none recorded."
+    parts = [f"`{c[:12]}` ({', '.join(sorted(set(r)))})" for c, r in sorted(commits.items())]
+    # "unrecorded": runs trained before timing.json carried the commit
+    return "Training commits (per run's `timing.json` and predictor `eval.json`): " + "; ".join(parts) + "."
 
 
 def param_count(run: Path) -> dict:
@@ -433,6 +457,7 @@ def capture_tables(
         else:
             lines.append("| predictor recovery (zero init) | the encoder gains < 0.1 dB: undefined | - | - | - |")
         lines += _ranking_lines(rows, spread)
+    lines += ["", _provenance_line(summaries)]
     picture = grid_picture(runs, tags, grid) if grid else {}
     if picture:
         link = os.path.relpath(picture["figure"], md_dir)

@@ -366,7 +366,11 @@ def test_default_cpu_training_and_driving_take_the_compiled_paths(tiny_dataset, 
     reset_paths()
     args = ["avatar", "--dataset", str(tiny_dataset), "--preset", "tiny", "--lpips", "off", "--image-scale", "0.5"]
     assert main([*args, "--steps", "2", "--no-evaluate", "--out", str(run)]) == 0
-    paths = json.loads((run / "timing.json").read_text())["kernel_paths"]
+    timing = json.loads((run / "timing.json").read_text())
+    head = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent)
+    if head.returncode == 0:  # the run names the commit that trained it (the results table checks it)
+        assert timing["code"]["commit"] == head.stdout.strip() and timing["commits"] == [head.stdout.strip()]
+    paths = timing["kernel_paths"]
     assert {"polar_rotation_fast", "sparse_interpolate_fast"} <= set(paths) or {
         "posed_quaternion_fast",
         "sparse_interpolate_fast",

@@ -41,6 +41,7 @@ from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.io import atomic_save_npz, atomic_write_json, read_npz
 from gsavatar.utils.jsonio import config_to_json, dataclass_defaults, parse_json_text
 from gsavatar.utils.outdir import claim_output_dir
+from gsavatar.utils.provenance import code_version
 
 TARGETS_FORMAT = "gsavatar-predictor-targets"
 
@@ -493,7 +494,7 @@ def train_predictor(
     summary = trainer.train()
     if not evaluate or trainer.step < cfg.steps:
         return summary
-    res = {"step": trainer.step, **info, "train": evaluate_predictor(model, data, train_segs)}
+    res = {"step": trainer.step, **info, "code": code_version(), "train": evaluate_predictor(model, data, train_segs)}
     if "test" in splits:
         res["test"] = evaluate_predictor(model, data, split_segments(data.frames, splits["test"].frames))
     atomic_write_json(d / "eval.json", res)

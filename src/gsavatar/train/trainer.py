@@ -31,6 +31,7 @@ from gsavatar.utils.cli import set_resume_hint
 from gsavatar.utils.io import atomic_write_json, atomic_write_text
 from gsavatar.utils.jsonio import dataclass_defaults
 from gsavatar.utils.outdir import claim_output_dir
+from gsavatar.utils.provenance import code_version
 
 
 def trim_log(path: Path, step: int) -> None:
@@ -228,6 +229,7 @@ class Trainer:
         threads), for the results table. Steps repeated after a resume count again (they were paid again)."""
         path = self.out / "timing.json"
         prev = {"steps": 0, "seconds": 0.0, "invocations": 0}
+        commits: set[str] = set()
         try:
             got = json.loads(path.read_text()) if path.exists() else {}
             got = {**prev, **got}
@@ -236,6 +238,7 @@ class Trainer:
                 "seconds": float(got["seconds"]),
                 "invocations": int(got["invocations"]),
             }
+            commits = {c for c in got.get("commits", []) if isinstance(c, str)}
         except (ValueError, TypeError, KeyError, RecursionError):
             pass  # a torn (killed run) or foreign file: start the tally again
         tot_steps, tot_s = prev["steps"] + steps, prev["seconds"] + seconds
@@ -250,5 +253,8 @@ class Trainer:
                 "device": str(self.device),
                 # which path each fast kernel took in this process so far (models/kernels.py: compiled or torch, why)
                 "kernel_paths": path_report(),
+                # the code that trained it: the last invocation's commit, and every commit that added steps
+                "code": code_version(),
+                "commits": sorted(commits | {code_version()["commit"]} - {None}),
             },
         )
