@@ -19,22 +19,36 @@ PRESET=${PRESET:-small}
 OUT=${OUT:-$PWD/out/demo}
 SYNTH=${SYNTH:-$PRESET}
 STUDY=${STUDY:-${BASELINES:-0}}
+train() {  # train NAME [avatar-train flags...]: one run, resumed if it exists
+    local name=$1
+    shift
+    .venv/bin/avatar-train avatar --dataset "$OUT/dataset" --out "$OUT/$name" --preset "$PRESET" "$@"
+}
+# CPU recipe of the predictor (docs/train.md "The appearance predictor on history-caused appearance"): one global
+# latent PCA of 8 components as the output clamp; zero context = the training-mean latent (the default)
+PRED_FLAGS="--steps 200 --window 8 --model.latent-pca global --model.latent-pca-components 8"
+seed_runs() {  # run-to-run spread of Ours: the same recipe with the seeds in $SEEDS (default 1 2)
+    for s in ${SEEDS-1 2}; do
+        train "run_ours_seed$s" --seed "$s"
+        .venv/bin/avatar-train predictor --run "$OUT/run_ours_seed$s" $PRED_FLAGS --seed "$s"
+    done
+}
+if [ "${SEEDS_ONLY:-0}" = 1 ]; then  # only the seed runs, on a dataset another demo of $OUT prepared (study.sh)
+    if [ ! -f "$OUT/report/report.json" ]; then
+        echo "SEEDS_ONLY=1: no prepared dataset in $OUT (run the demo first)" >&2
+        exit 2
+    fi
+    seed_runs
+    exit 0
+fi
 if [ ! -f "$OUT/capture/capture.json" ]; then
     .venv/bin/avatar-prep synth --out "$OUT/capture" --preset "$SYNTH"
 fi
 .venv/bin/avatar-prep all --capture "$OUT/capture" --out "$OUT/dataset"
 .venv/bin/avatar-prep verify "$OUT/dataset"
 .venv/bin/python -m gsavatar.prep.report "$OUT/dataset" --out "$OUT/report" > /dev/null
-train() {  # train NAME [avatar-train flags...]: one run, resumed if it exists
-    local name=$1
-    shift
-    .venv/bin/avatar-train avatar --dataset "$OUT/dataset" --out "$OUT/$name" --preset "$PRESET" "$@"
-}
 train run_ours
 .venv/bin/avatar-train turntable --run "$OUT/run_ours" --out "$OUT/run_ours/turntable.mp4"
-# CPU recipe of the predictor (docs/train.md "The appearance predictor on history-caused appearance"): one global
-# latent PCA of 8 components as the output clamp; zero context = the training-mean latent (the default)
-PRED_FLAGS="--steps 200 --window 8 --model.latent-pca global --model.latent-pca-components 8"
 .venv/bin/avatar-train predictor --run "$OUT/run_ours" $PRED_FLAGS
 .venv/bin/avatar-drive --run "$OUT/run_ours" --motion "$OUT/capture" --split test --mode predictor_encoder_init \
     --out "$OUT/drive_test"
@@ -62,10 +76,7 @@ print(H.load('$OUT/dataset/sample_points/hierarchy.npz').num_gaussians // 4)")
     .venv/bin/avatar-prep all --capture "$OUT/capture" --out "$OUT/dataset_fewgauss" --sample.gaussians "$G" \
         --no-figures
     .venv/bin/avatar-train avatar --dataset "$OUT/dataset_fewgauss" --out "$OUT/run_ours_fewgauss" --preset "$PRESET"
-    for s in ${SEEDS-1 2}; do  # run-to-run spread of Ours: the same recipe with other seeds
-        train "run_ours_seed$s" --seed "$s"
-        .venv/bin/avatar-train predictor --run "$OUT/run_ours_seed$s" $PRED_FLAGS --seed "$s"
-    done
+    seed_runs
     PYTHONPATH=src .venv/bin/python benchmarks/results_table.py --runs "$SYNTH=$OUT" --out "$OUT/results.md"
 fi
 echo
