@@ -380,12 +380,12 @@ def test_block_facing_bound_never_culls_a_facing_texel(tmp_path):
     for min_cos in (0.1, 0.0, -0.3):
         for s0 in range(0, N, block):
             n = min(N, s0 + block) - s0
-            bnd = np.empty(8)
+            bnd = np.empty(zb.BND_SIZE)
             zb._block_bounds(P, Nrm, s0, n, bnd)
             for cp in zf.cams:
                 if zb._faces_away(bnd, cp, min_cos):
                     culled += 1
-                    tv = cp[12:15, None] - P[:, s0 : s0 + n]
+                    tv = cp[[zb.CAM_CENTER_X, zb.CAM_CENTER_Y, zb.CAM_CENTER_Z], None] - P[:, s0 : s0 + n]
                     nt = (Nrm[:, s0 : s0 + n] * tv).sum(0)
                     assert not np.any(nt >= min_cos * np.linalg.norm(tv, axis=0)), (s0, min_cos)
                     assert not (s0 <= 5 < s0 + n)

@@ -364,7 +364,7 @@ class _ZFrame:
     Nrm: np.ndarray  # [3, N] float64 unit texel normals
     num_views: int  # views consumed (including ones without foreground)
     index: list[int]  # position of each kept view among all views
-    cams: list[np.ndarray]  # [CAM_FIELDS] float64 packed cameras
+    cams: list[np.ndarray]  # [CAM_SIZE] float64 packed cameras (zbuffer.CAMERA_ROW)
     imgs: list[
         np.ndarray
     ]  # [h*w, 4] float32 or uint8 of the view's region, alpha = quad foreground (zbuffer.region_rgba)

@@ -34,6 +34,11 @@ pixel-centre depth, removes the half-pixel slope error at oblique angles. Differ
 the ray path are confined to sub-pixel neighbourhoods of occluding contours (the nearest pixel's
 triangle decides) and to sub-``eps`` gaps.
 
+Packed rows: a view's camera reaches the kernels as one float64 row (:func:`pack_camera`) and a block's
+bounds as another (:func:`_block_bounds`); both are laid out by a table of named fields (:data:`CAMERA_ROW`,
+:data:`BOUNDS_ROW`) whose offsets are module constants (``cp[CAM_FX]``, ``bnd[BND_RADIUS]``), compile-time
+constants to numba.
+
 Threads: the per-texel kernels use ``prange``; :func:`set_threads` caps numba at
 ``min(torch threads, numba threads)`` so OMP_NUM_THREADS=1 means one thread. Per-texel results
 do not depend on the thread count (no reductions across texels).
@@ -356,10 +361,97 @@ def transform(vertices, R, T):
     return out
 
 
-# --------------------------------------------------------------------------- per-texel sampling
+# --------------------------------------------------------------------------- packed rows
 
-CAM_FIELDS = 43
+
+class RowField(NamedTuple):
+    """One field of a packed float64 row that the kernels read at ``offset`` (its module constant)."""
+
+    name: str  # the constant is PREFIX_<name>, e.g. CAM_FX
+    offset: int  # first element in the row
+    width: int  # number of elements
+    doc: str  # meaning and units
+
+
+class _RowLayout:
+    """Lays out a packed row field by field, in call order: each field starts where the previous one ended,
+    so the offsets are contiguous and non-overlapping by construction (and tested)."""
+
+    def __init__(self) -> None:
+        self.fields: list[RowField] = []
+        self.size = 0
+
+    def field(self, name: str, doc: str, width: int = 1) -> int:
+        """Append a field; -> its offset."""
+        self.fields.append(RowField(name, self.size, width, doc))
+        self.size += width
+        return self.fields[-1].offset
+
+
+def _pack_row(fields: tuple[RowField, ...], size: int, values: dict[str, object]) -> np.ndarray:
+    """A [size] float64 row holding values[f.name] at each field's offset; exactly the fields' names."""
+    if set(values) != {f.name for f in fields}:
+        raise ValueError(f"row fields must be {[f.name for f in fields]}, got {sorted(values)}")
+    row = np.empty(size, np.float64)
+    for f in fields:
+        row[f.offset : f.offset + f.width] = values[f.name]
+    return row
+
+
+# One view's camera, as :func:`pack_camera` writes it and the kernels (:func:`_project_block`,
+# :func:`_sample_block`, :func:`_faces_away`) read it: ``cp[CAM_FX]``. Numba reads module-level ints as
+# compile-time constants, so a named index costs what a literal did. A new field is one line here (plus
+# its value in pack_camera); the offsets of all later fields follow. Integer-valued fields (sizes, pixel
+# offsets) and flags (1.0 / 0.0) are stored as float64 like the rest.
+_cam = _RowLayout()
+CAM_R00 = _cam.field("R00", "cam_from_world rotation R[0, 0]: X_cam = R X_world + T (OpenCV axes, +z forward)")
+CAM_R01 = _cam.field("R01", "R[0, 1]")
+CAM_R02 = _cam.field("R02", "R[0, 2]")
+CAM_R10 = _cam.field("R10", "R[1, 0]")
+CAM_R11 = _cam.field("R11", "R[1, 1]")
+CAM_R12 = _cam.field("R12", "R[1, 2]")
+CAM_R20 = _cam.field("R20", "R[2, 0]")
+CAM_R21 = _cam.field("R21", "R[2, 1]")
+CAM_R22 = _cam.field("R22", "R[2, 2]")
+CAM_T0 = _cam.field("T0", "cam_from_world translation T[0] (metres)")
+CAM_T1 = _cam.field("T1", "T[1] (metres)")
+CAM_T2 = _cam.field("T2", "T[2] (metres)")
+CAM_CENTER_X = _cam.field("CENTER_X", "camera centre -R^T T, world x (metres)")
+CAM_CENTER_Y = _cam.field("CENTER_Y", "camera centre, world y (metres)")
+CAM_CENTER_Z = _cam.field("CENTER_Z", "camera centre, world z (metres)")
+CAM_FX = _cam.field("FX", "K[0, 0], focal length in x (pixels)")
+CAM_SKEW = _cam.field("SKEW", "K[0, 1], skew (pixels)")
+CAM_CX = _cam.field("CX", "K[0, 2], principal point x (pixels, pixel centres at integers)")
+CAM_FY = _cam.field("FY", "K[1, 1], focal length in y (pixels)")
+CAM_CY = _cam.field("CY", "K[1, 2], principal point y (pixels)")
+CAM_K1 = _cam.field("K1", "radial distortion k1 (OpenCV order k1, k2, p1, p2, k3; unitless)")
+CAM_K2 = _cam.field("K2", "radial distortion k2")
+CAM_P1 = _cam.field("P1", "tangential distortion p1")
+CAM_P2 = _cam.field("P2", "tangential distortion p2")
+CAM_K3 = _cam.field("K3", "radial distortion k3")
+CAM_USE_DIST = _cam.field("USE_DIST", "1.0 when any distortion coefficient is non-zero, else 0.0")
+CAM_R2MAX = _cam.field("R2MAX", "largest valid squared undistorted radius x^2 + y^2 (normalised; inf: any)")
+CAM_WIDTH = _cam.field("WIDTH", "image width W (pixels)")
+CAM_HEIGHT = _cam.field("HEIGHT", "image height H (pixels)")
+CAM_GRID_FX = _cam.field("GRID_FX", "pinhole depth grid (:class:`Grid`) fx (pixels)")
+CAM_GRID_SKEW = _cam.field("GRID_SKEW", "grid skew (pixels)")
+CAM_GRID_CX = _cam.field("GRID_CX", "grid cx (grid pixels)")
+CAM_GRID_FY = _cam.field("GRID_FY", "grid fy (pixels)")
+CAM_GRID_CY = _cam.field("GRID_CY", "grid cy (grid pixels)")
+CAM_GRID_WIDTH = _cam.field("GRID_WIDTH", "grid width (pixels)")
+CAM_GRID_HEIGHT = _cam.field("GRID_HEIGHT", "grid height (pixels)")
+CAM_CROP_X = _cam.field("CROP_X", "x of the triangle-id buffer's crop origin in the grid (grid pixels)")
+CAM_CROP_Y = _cam.field("CROP_Y", "y of the crop origin (grid pixels)")
+CAM_GRID_IS_IMAGE = _cam.field("GRID_IS_IMAGE", "1.0 when the grid is the image (no distortion, grid = K), else 0.0")
+CAM_REGION_X = _cam.field("REGION_X", "x0 of the image region the RGBA buffer holds (:func:`region_rgba`; pixels)")
+CAM_REGION_Y = _cam.field("REGION_Y", "y0 of the region (pixels)")
+CAM_REGION_WIDTH = _cam.field("REGION_WIDTH", "region width (pixels; the RGBA buffer's row stride)")
+CAM_REGION_HEIGHT = _cam.field("REGION_HEIGHT", "region height (pixels)")
+CAM_SIZE = _cam.size
 """Length of a packed camera row (:func:`pack_camera`)."""
+CAMERA_ROW: tuple[RowField, ...] = tuple(_cam.fields)
+"""The camera row's fields in order (name, offset, width, doc); ``CAM_<name>`` is each one's offset."""
+del _cam
 
 
 def pack_camera(
@@ -369,28 +461,35 @@ def pack_camera(
     crop: tuple[int, int] = (0, 0),
     region: tuple[int, int, int, int] | None = None,
 ) -> np.ndarray:
-    """One view's parameters for the kernels. -> [CAM_FIELDS] float64:
-    R (9, row-major), T (3), centre (3), fx, skew, cx, fy, cy, dist (5), use_dist, r2max, W, H,
-    grid (fx, skew, cx, fy, cy, width, height), crop origin (x, y) of the triangle-id buffer in the
-    grid, grid-is-image flag (no distortion: the grid coordinate is the pixel coordinate), and the image
-    region the RGBA buffer holds (x0, y0, width, height; :func:`region_rgba`; default the whole image)."""
+    """One view's parameters for the kernels, laid out by :data:`CAMERA_ROW`. -> [CAM_SIZE] float64
+
+    Args:
+        cam: the view's camera (K, R, T, dist, width, height)
+        r2max: largest valid squared undistorted radius (``inf``: no limit)
+        grid: its pinhole depth grid (:func:`pinhole_grid`)
+        crop: (x, y) origin of the triangle-id buffer in the grid (grid pixels)
+        region: (x0, y0, width, height) of the image region the RGBA buffer holds (:func:`region_rgba`;
+            default the whole image)
+    """
     K = np.asarray(cam.K, np.float64)
+    R = np.asarray(cam.R, np.float64).reshape(3, 3)
+    T = np.asarray(cam.T, np.float64).reshape(3)
+    centre = np.asarray(cam.center, np.float64).reshape(3)
     d = np.asarray(cam.dist, np.float64).reshape(5)
     same = (not np.any(d)) and grid.params.tolist() == [K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]]
-    region = (0, 0, cam.width, cam.height) if region is None else region
-    return np.concatenate(
-        [
-            np.asarray(cam.R, np.float64).ravel(),
-            np.asarray(cam.T, np.float64).reshape(3),
-            np.asarray(cam.center, np.float64).reshape(3),
-            [K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]],
-            d,
-            [float(np.any(d)), r2max, cam.width, cam.height],
-            grid.params,
-            [grid.width, grid.height, crop[0], crop[1], float(same)],
-            np.asarray(region, np.float64),
-        ]
-    )
+    rx0, ry0, rw, rh = (0, 0, cam.width, cam.height) if region is None else region
+    values = {f"R{i}{j}": R[i, j] for i in range(3) for j in range(3)}
+    values.update(T0=T[0], T1=T[1], T2=T[2], CENTER_X=centre[0], CENTER_Y=centre[1], CENTER_Z=centre[2])
+    values.update(FX=K[0, 0], SKEW=K[0, 1], CX=K[0, 2], FY=K[1, 1], CY=K[1, 2])
+    values.update(K1=d[0], K2=d[1], P1=d[2], P2=d[3], K3=d[4], USE_DIST=float(np.any(d)), R2MAX=r2max)
+    values.update(WIDTH=cam.width, HEIGHT=cam.height)
+    values.update(GRID_FX=grid.fx, GRID_SKEW=grid.skew, GRID_CX=grid.cx, GRID_FY=grid.fy, GRID_CY=grid.cy)
+    values.update(GRID_WIDTH=grid.width, GRID_HEIGHT=grid.height, CROP_X=crop[0], CROP_Y=crop[1])
+    values.update(GRID_IS_IMAGE=float(same), REGION_X=rx0, REGION_Y=ry0, REGION_WIDTH=rw, REGION_HEIGHT=rh)
+    return _pack_row(CAMERA_ROW, CAM_SIZE, values)
+
+
+# --------------------------------------------------------------------------- per-texel sampling
 
 
 @numba.njit(cache=False, error_model="numpy", nogil=True, inline="always")
@@ -405,30 +504,44 @@ def _adjacent(faces, a, b):
 
 @numba.njit(cache=False, error_model="numpy", nogil=True, inline="always")
 def _project_block(P, Nrm, s0, n, cp, min_cos, Hc, Wc, I00, FX, FY, RAY, TI):
-    """Pass 1 of a block of texels s0 .. s0+n-1 in one view (packed camera ``cp``): branch-free, so LLVM
-    vectorises it. Writes per texel j: I00[j] the RGBA-buffer index of the first bilinear tap (-1: behind the
-    camera, not facing it (``min_cos``), outside the distortion's valid radius, the image or the buffer's
-    region), FX/FY[j] the tap fractions (float32), RAY[j] = (camera-space z, xu, yu, distance to the camera
-    centre) and TI[j] the flat index into the triangle-id crop [Hc, Wc] (-1: outside it, nothing rasterized;
-    -2: outside the pinhole grid, rejected). Same float64 operations, in the same order, as the numpy reference
-    ``project_uv._sample_view``."""
-    R00, R01, R02, R10, R11, R12, R20, R21, R22 = cp[0], cp[1], cp[2], cp[3], cp[4], cp[5], cp[6], cp[7], cp[8]
-    T0, T1, T2 = cp[9], cp[10], cp[11]
-    C0, C1, C2 = cp[12], cp[13], cp[14]
-    fx, sk, cx, fy, cy = cp[15], cp[16], cp[17], cp[18], cp[19]
-    k1, k2, p1, p2, k3 = cp[20], cp[21], cp[22], cp[23], cp[24]
-    use_dist = cp[25] != 0
-    r2max = cp[26]
-    W = int(cp[27])
-    H = int(cp[28])
-    gfx, gsk, gcx, gfy, gcy, gW, gH = cp[29], cp[30], cp[31], cp[32], cp[33], cp[34], cp[35]
-    ox = int(cp[36])
-    oy = int(cp[37])
-    same = cp[38] != 0
-    rx0 = int(cp[39])
-    ry0 = int(cp[40])
-    rw = int(cp[41])
-    rh = int(cp[42])
+    """Pass 1 of a block of texels s0 .. s0+n-1 in one view: branch-free, so LLVM vectorises it. Same float64
+    operations, in the same order, as the numpy reference ``project_uv._sample_view``.
+
+    Args:
+        P, Nrm: [3, N] float64 texel points / unit normals (world)
+        s0, n: the block's first texel and its number of texels
+        cp: [CAM_SIZE] float64 the view's packed camera (:data:`CAMERA_ROW`)
+        min_cos: facing threshold on cos(normal, direction to the camera)
+        Hc, Wc: shape of the view's triangle-id crop (grid pixels)
+        I00: [>= n] int64 out: the RGBA-buffer index of the first bilinear tap (-1: behind the camera, not
+            facing it, outside the distortion's valid radius, the image or the buffer's region)
+        FX, FY: [>= n] float32 out: the tap fractions in x and y
+        RAY: [>= n, 4] float64 out: (camera-space z, xu, yu, distance to the camera centre), xu, yu the
+            undistorted normalised coordinates
+        TI: [>= n] int64 out: the flat index into the triangle-id crop [Hc, Wc] (-1: outside it, nothing
+            rasterized; -2: outside the pinhole grid, rejected)
+    """
+    R00, R01, R02 = cp[CAM_R00], cp[CAM_R01], cp[CAM_R02]
+    R10, R11, R12 = cp[CAM_R10], cp[CAM_R11], cp[CAM_R12]
+    R20, R21, R22 = cp[CAM_R20], cp[CAM_R21], cp[CAM_R22]
+    T0, T1, T2 = cp[CAM_T0], cp[CAM_T1], cp[CAM_T2]
+    C0, C1, C2 = cp[CAM_CENTER_X], cp[CAM_CENTER_Y], cp[CAM_CENTER_Z]
+    fx, sk, cx, fy, cy = cp[CAM_FX], cp[CAM_SKEW], cp[CAM_CX], cp[CAM_FY], cp[CAM_CY]
+    k1, k2, p1, p2, k3 = cp[CAM_K1], cp[CAM_K2], cp[CAM_P1], cp[CAM_P2], cp[CAM_K3]
+    use_dist = cp[CAM_USE_DIST] != 0
+    r2max = cp[CAM_R2MAX]
+    W = int(cp[CAM_WIDTH])
+    H = int(cp[CAM_HEIGHT])
+    gfx, gsk, gcx = cp[CAM_GRID_FX], cp[CAM_GRID_SKEW], cp[CAM_GRID_CX]
+    gfy, gcy = cp[CAM_GRID_FY], cp[CAM_GRID_CY]
+    gW, gH = cp[CAM_GRID_WIDTH], cp[CAM_GRID_HEIGHT]
+    ox = int(cp[CAM_CROP_X])
+    oy = int(cp[CAM_CROP_Y])
+    same = cp[CAM_GRID_IS_IMAGE] != 0
+    rx0 = int(cp[CAM_REGION_X])
+    ry0 = int(cp[CAM_REGION_Y])
+    rw = int(cp[CAM_REGION_WIDTH])
+    rh = int(cp[CAM_REGION_HEIGHT])
     Wm = W - 1
     Hm = H - 1
     xmax = max(W - 2, 0)
@@ -487,10 +600,26 @@ def _sample_block(
     """Pass 2 of a block in one view: for each texel j that pass 1 kept, the mask flag (the RGBA buffer's
     alpha), the depth test against the triangle-id buffer (module docstring) and the bilinear colour,
     written to out[row0 + j * stride + k[j], 0:3] (float32); k[j] += 1 when seen with a finite colour.
-    cp: the view's packed camera (image size and buffer region: the offsets of the right and lower taps, 0 on
-    a one-pixel-wide / -high image)."""
-    dx = 1 if int(cp[27]) > 1 else 0
-    dy = int(cp[41]) if int(cp[28]) > 1 else 0
+
+    Args:
+        s0, n: the block's first texel and its number of texels
+        own_tri: [N] int32 each texel's triangle (of faces)
+        faces: [F, 3] int mesh triangles (vertex ids)
+        cp: [CAM_SIZE] float64 the view's packed camera (:data:`CAMERA_ROW`): the image size and the buffer
+            region give the offsets of the right and lower taps (0 on a one-pixel-wide / -high image)
+        img: [w*h, 4] uint8 or float32 the view's :func:`region_rgba` buffer (alpha: the quad foreground flag)
+        u8: img is uint8 (read as ``x / 255``)
+        use_vis: run the depth test
+        tid: [Hc, Wc] int32 the view's triangle-id crop (-1 empty)
+        planes: [F, 4] float64 camera-space triangle planes ``n . X = d`` (:func:`rasterize`)
+        eps: depth-test tolerance along the ray (metres)
+        I00, FX, FY, RAY, TI: pass 1's outputs (:func:`_project_block`)
+        out: [M, 3] float32 out: the samples
+        row0, stride: texel j's samples start at row ``row0 + j * stride`` of out
+        k: [>= n] int64 in/out: samples so far per texel
+    """
+    dx = 1 if int(cp[CAM_WIDTH]) > 1 else 0
+    dy = int(cp[CAM_REGION_WIDTH]) if int(cp[CAM_HEIGHT]) > 1 else 0
     tflat = tid.ravel()
     one = np.float32(1.0)
     for j in range(n):
@@ -542,11 +671,21 @@ def _sample_block(
 def sample_view(P, Nrm, own_tri, faces, cp, img, u8, use_vis, tri_id, planes, eps, min_cos, rgb, ok):
     """Sample one view for every texel (see the module docstring; diagnostics and tests).
 
-    P, Nrm [3, N] float64 texel points / unit normals (world), own_tri [N] int32 texel triangles
-    (of faces [F, 3]), cp [CAM_FIELDS] float64 (:func:`pack_camera`), img [w*h, 4] (:func:`region_rgba` of
-    cp's region: RGB float32 in [0, 1] or uint8 (``u8``: read as ``x / 255``), alpha the :func:`quad_foreground`
-    flag), tri_id [Hc, Wc] int32 (the crop of the grid at cp's crop origin) + planes [F, 4] from
-    :func:`rasterize` (used when ``use_vis``). Writes rgb [N, 3] float32 (only where seen) and ok [N] bool.
+    Args:
+        P, Nrm: [3, N] float64 texel points / unit normals (world)
+        own_tri: [N] int32 each texel's triangle (of faces)
+        faces: [F, 3] int mesh triangles (vertex ids)
+        cp: [CAM_SIZE] float64 the packed camera (:func:`pack_camera`, :data:`CAMERA_ROW`)
+        img: [w*h, 4] the :func:`region_rgba` buffer of cp's region: RGB float32 in [0, 1] or uint8, alpha the
+            :func:`quad_foreground` flag
+        u8: img is uint8 (read as ``x / 255``)
+        use_vis: run the depth test against tri_id and planes
+        tri_id: [Hc, Wc] int32 the crop of the grid at cp's crop origin (:func:`rasterize`)
+        planes: [F, 4] float64 camera-space triangle planes (:func:`rasterize`)
+        eps: depth-test tolerance along the ray (metres)
+        min_cos: facing threshold on cos(normal, direction to the camera)
+        rgb: [N, 3] float32 out: the sample (written only where seen)
+        ok: [N] bool out: seen
     """
     N = P.shape[1]
     block = 1024
@@ -652,12 +791,32 @@ def fuse(rgb, ok, median_band, lo, hi, col, count, seen):
 
 # --------------------------------------------------------------------------- whole frame
 
+# A block of texels' bounds, as :func:`_block_bounds` writes them and :func:`_faces_away` reads them:
+# a bounding sphere of the points and a cone of the normals.
+_bnd = _RowLayout()
+BND_CENTER_X = _bnd.field("CENTER_X", "bounding-sphere centre (mean of the block's points), world x (metres)")
+BND_CENTER_Y = _bnd.field("CENTER_Y", "bounding-sphere centre, world y (metres)")
+BND_CENTER_Z = _bnd.field("CENTER_Z", "bounding-sphere centre, world z (metres)")
+BND_RADIUS = _bnd.field("RADIUS", "bounding-sphere radius (metres, widened by 1e-9 relative + 1e-12)")
+BND_AXIS_X = _bnd.field("AXIS_X", "normal-cone axis (the normalised mean normal), x (unit vector)")
+BND_AXIS_Y = _bnd.field("AXIS_Y", "normal-cone axis, y")
+BND_AXIS_Z = _bnd.field("AXIS_Z", "normal-cone axis, z")
+BND_HALF_ANGLE = _bnd.field(
+    "HALF_ANGLE", "normal-cone half-angle (radians, + 1e-7); 4.0 (> pi: never culled) on a zero normal or no axis"
+)
+BND_SIZE = _bnd.size
+"""Length of a block-bounds row (:func:`_block_bounds`)."""
+BOUNDS_ROW: tuple[RowField, ...] = tuple(_bnd.fields)
+"""The bounds row's fields in order; ``BND_<name>`` is each one's offset."""
+del _bnd
+
 
 @numba.njit(cache=False, error_model="numpy", nogil=True, inline="always")
 def _block_bounds(P, Nrm, s0, n, out):
-    """Bounds of a block's texels for :func:`_faces_away`: out = (centre xyz, radius, unit normal-cone axis
-    xyz, cone half-angle) of the points P[:, s0:s0+n] and unit normals Nrm[:, s0:s0+n]; half-angle > pi when
-    the block has a zero normal or no usable axis (never culled)."""
+    """Bounds of a block's texels for :func:`_faces_away`: out [BND_SIZE] float64 (:data:`BOUNDS_ROW`: centre,
+    radius, unit normal-cone axis, cone half-angle) of the points P[:, s0:s0+n] and unit normals
+    Nrm[:, s0:s0+n] [3, N] float64; half-angle > pi when the block has a zero normal or no usable axis (never
+    culled)."""
     cx = 0.0
     cy = 0.0
     cz = 0.0
@@ -691,28 +850,31 @@ def _block_bounds(P, Nrm, s0, n, out):
         dn = Nrm[0, i] * ax + Nrm[1, i] * ay + Nrm[2, i] * az
         ln = math.sqrt(Nrm[0, i] * Nrm[0, i] + Nrm[1, i] * Nrm[1, i] + Nrm[2, i] * Nrm[2, i])
         mindot = min(mindot, dn / ln if ln > 0 else -1.0)
-    out[0], out[1], out[2] = cx, cy, cz
-    out[3] = math.sqrt(r2) * (1 + 1e-9) + 1e-12
-    out[4], out[5], out[6] = ax, ay, az
-    out[7] = 4.0 if zero or la <= 1e-9 else math.acos(max(-1.0, min(1.0, mindot))) + 1e-7
+    out[BND_CENTER_X], out[BND_CENTER_Y], out[BND_CENTER_Z] = cx, cy, cz
+    out[BND_RADIUS] = math.sqrt(r2) * (1 + 1e-9) + 1e-12
+    out[BND_AXIS_X], out[BND_AXIS_Y], out[BND_AXIS_Z] = ax, ay, az
+    out[BND_HALF_ANGLE] = 4.0 if zero or la <= 1e-9 else math.acos(max(-1.0, min(1.0, mindot))) + 1e-7
 
 
 @numba.njit(cache=False, error_model="numpy", nogil=True, inline="always")
 def _faces_away(bnd, cp, min_cos):
-    """True when no texel of a block (:func:`_block_bounds`) can pass the facing test of the view whose
-    centre is cp[12:15]: every direction u from a texel to the camera lies within asin(r / L) of the
-    direction from the block's centre (L its distance), every normal within the cone's half-angle of its
-    axis, so the angle between normal and u is at least ``g = angle(axis, centre -> camera) - half-angle -
-    asin(r / L)``; cull when ``cos(g) < min_cos`` (with a 1e-7 margin on the angle and 1e-9 on the cosine)."""
-    if bnd[7] > 3.5:
+    """True when no texel of a block (bnd [BND_SIZE], :func:`_block_bounds`) can pass the facing test of the
+    view whose packed camera is cp [CAM_SIZE] (its centre CAM_CENTER_X/Y/Z): every direction u from a texel to
+    the camera lies within asin(r / L) of the direction from the block's centre (L its distance), every normal
+    within the cone's half-angle of its axis, so the angle between normal and u is at least
+    ``g = angle(axis, centre -> camera) - half-angle - asin(r / L)``; cull when ``cos(g) < min_cos`` (with a
+    1e-7 margin on the angle and 1e-9 on the cosine)."""
+    if bnd[BND_HALF_ANGLE] > 3.5:
         return False
-    vx, vy, vz = cp[12] - bnd[0], cp[13] - bnd[1], cp[14] - bnd[2]
+    vx = cp[CAM_CENTER_X] - bnd[BND_CENTER_X]
+    vy = cp[CAM_CENTER_Y] - bnd[BND_CENTER_Y]
+    vz = cp[CAM_CENTER_Z] - bnd[BND_CENTER_Z]
     L = math.sqrt(vx * vx + vy * vy + vz * vz)
-    r = bnd[3]
+    r = bnd[BND_RADIUS]
     if not L > 2 * r:
         return False
-    ca = (vx * bnd[4] + vy * bnd[5] + vz * bnd[6]) / L
-    g = math.acos(max(-1.0, min(1.0, ca))) - bnd[7] - math.asin(r / L) - 1e-7
+    ca = (vx * bnd[BND_AXIS_X] + vy * bnd[BND_AXIS_Y] + vz * bnd[BND_AXIS_Z]) / L
+    g = math.acos(max(-1.0, min(1.0, ca))) - bnd[BND_HALF_ANGLE] - math.asin(r / L) - 1e-7
     return g > 0 and math.cos(g) < min_cos - 1e-9
 
 
@@ -741,11 +903,28 @@ def project_frame(
 ):
     """Sample every view and fuse, in blocks of ``block`` texels (a block's samples stay in cache).
 
-    P, Nrm [3, N], own_tri [N], faces [F, 3] as :func:`sample_view`; cams [C, CAM_FIELDS]; imgs, tri_ids,
-    planes: typed lists of C arrays (img [w*h, 4] of :func:`region_rgba`, tri_id [Hc, Wc] int32, planes [F, 4]).
-    Texel i's result goes to row out_index[i] of col [M, 3] float32, count [M], seen [M] (uint8 or int64,
-    saturating at 255); equal to :func:`fuse` of :func:`sample_view`'s samples (a texel's samples are appended
-    in view order).
+    Texel i's result goes to row out_index[i] of col, count, seen; equal to :func:`fuse` of
+    :func:`sample_view`'s samples (a texel's samples are appended in view order).
+
+    Args:
+        P, Nrm: [3, N] float64 texel points / unit normals (world)
+        own_tri: [N] int32 each texel's triangle (of faces)
+        faces: [F, 3] int mesh triangles (vertex ids)
+        cams: [C, CAM_SIZE] float64 packed cameras (:func:`pack_camera`, :data:`CAMERA_ROW`)
+        imgs: typed list of C [w*h, 4] uint8 or float32 :func:`region_rgba` buffers of each camera's region
+        u8: the buffers are uint8 (read as ``x / 255``), else float32 in [0, 1]
+        use_vis: run the depth test
+        tri_ids: typed list of C [Hc, Wc] int32 triangle-id crops (:func:`rasterize`, at cp's crop origin)
+        planes: typed list of C [F, 4] float64 camera-space triangle planes (:func:`rasterize`)
+        eps: depth-test tolerance along the ray (metres)
+        min_cos: facing threshold on cos(normal, direction to the camera)
+        median_band: fuse by the median band (else the mean of all seen samples)
+        lo, hi: the band ``lo * median <= L <= hi * median`` on luminance L
+        block: texels per block
+        out_index: [N] int the output row of each texel
+        col: [M, 3] float32 out: fused colour (0 where nothing kept)
+        count: [M] uint8 or int64 out: samples kept (uint8 saturates at 255)
+        seen: [M] uint8 or int64 out: samples seen (uint8 saturates at 255)
 
     Per block: its bounds (:func:`_block_bounds`); per view, unless :func:`_faces_away` rejects the whole
     block, pass 1 (:func:`_project_block`, vectorised) and pass 2 (:func:`_sample_block`); then the fusion.
@@ -764,7 +943,7 @@ def project_frame(
         FX = np.empty(block, np.float32)
         FY = np.empty(block, np.float32)
         RAY = np.empty((block, 4))
-        bnd = np.empty(8)
+        bnd = np.empty(BND_SIZE)
         L = np.empty(C)
         idx = np.empty(C, np.int64)
         keep = np.zeros(C, np.bool_)
