@@ -36,6 +36,7 @@ def main() -> None:
     ap.add_argument("--absolute", action="store_true", help="l_t = mean + head(h) (not residual)")
     ap.add_argument("--joint-tokens", action="store_true", help="joint-position tokens in the heading frame")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--train-frames", type=int, default=None, help="train on the last N training frames only")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
 
@@ -86,7 +87,10 @@ def main() -> None:
         seed=a.seed,
         kinematics=KinematicChain.from_rig(cap.rig) if a.joint_tokens else None,
     )
-    train = split_segments(data.frames, cap.splits["train"].frames)
+    train_frames = np.asarray(cap.splits["train"].frames)
+    if a.train_frames is not None:  # one change: the amount of training data, the test frames unchanged
+        train_frames = train_frames[-a.train_frames :]
+    train = split_segments(data.frames, train_frames)
     test = split_segments(data.frames, cap.splits["test"].frames)
     prepare_model(model, data, train)
     tcfg = PredictorTrainConfig(
@@ -112,6 +116,7 @@ def main() -> None:
         "velocities": cfg.velocities,
         "joint_tokens": cfg.joint_tokens,
         "steps": a.steps,
+        "train_frames": int(len(train_frames)),
         "seconds": secs,
     }
     s, e = test[0]
@@ -122,7 +127,7 @@ def main() -> None:
     # here the states' zero is a real state, so start from the training mean like the drive's zero-init does.
     mean0 = model.rollout(P, R, T, model.latent_mean.clone())[:, 0]
     teach = model.rollout(P, R, T, gt[:1], first_is_given=True)[:, 0]
-    sd = lv[train[0][0] : train[-1][1]].std(0).clamp_min(1e-6)
+    sd = lv[np.asarray(cap.splits["train"].frames)].std(0).clamp_min(1e-6)  # the same scale for any --train-frames
     r2 = lambda p: pooled_r2((p / sd).numpy(), (gt / sd).numpy())  # noqa: E731
     res.update(
         {
