@@ -35,8 +35,14 @@ except ImportError:  # code before the runs/ package (e.g. f1bc3d8)
 from gsavatar.train.trainer import Trainer
 a = json.loads(sys.argv[1])
 kw = dict(dataset=a["dataset"], out=tempfile.mkdtemp(prefix="bench_step_"), preset=a["preset"], lpips="off",
-          correctives_step=0, checkpoint_every=10**9, log_every=10**9)
+          log_every=10**9)
 fields = inspect.signature(TrainConfig).parameters
+sched = dict(correctives_step=0, checkpoint_every=10**9)
+if "schedule" in fields:  # the config tree (runs/config.py Schedule)
+    from gsavatar.runs.config import Schedule
+    kw["schedule"] = Schedule(**sched)
+else:  # code before it: flat schedule fields
+    kw.update(sched)
 tr = Trainer(TrainConfig(**kw))
 if "cache_views" in fields and not a["cold"]:
     for i in range(len(tr.data)):  # fill the view cache: the steady state after one pass over the views

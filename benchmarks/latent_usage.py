@@ -4,7 +4,8 @@
         --out /tmp/lat --name no_center --no-center --steps 600 --correctives-step 100
 
 Trains ``ours`` (``small`` model) on the dataset with the CPU recipe (``gsavatar.models.config.CPU_RECIPE``,
-``TrainConfig.basis_lr_scale``/``vae_noise_step`` of the preset) minus the named change, then prints one JSON
+``Schedule.basis_lr_scale``/``vae_noise_step`` of the preset) minus the named change (the model is passed as
+``TrainConfig.model``, the same as ``avatar-train avatar --model.*`` flags), then prints one JSON
 line: ``latent_gain_db`` (PSNR inside the mask on held-out cameras of test frames, encoder latents minus the
 training mean latent), the frame-dependence ratio (avatar colour std over training frames / ground truth's),
 the PSNRs and the seconds. Results of our runs are in docs/train.md ("A recipe for the CPU budget").
@@ -49,8 +50,8 @@ def main() -> None:
     )
     a = ap.parse_args()
 
-    import gsavatar.models.config as mc
-    from gsavatar.runs.config import TrainConfig
+    from gsavatar.models.config import CPU_RECIPE, model_preset
+    from gsavatar.runs.config import Schedule, TrainConfig
     from gsavatar.runs.load import LoadedRun
     from gsavatar.train.runs import evaluate_run
     from gsavatar.train.trainer import Trainer
@@ -60,31 +61,34 @@ def main() -> None:
         "center_correctives": a.no_center or a.paper_model,
         "latent_norm": a.no_latent_norm or a.paper_model,
     }
-    mc.CPU_RECIPE = {k: (not off[k]) if k in off else v for k, v in mc.CPU_RECIPE.items()}  # read by model_preset
+    recipe = {k: (not off[k]) if k in off else v for k, v in CPU_RECIPE.items()}  # the CPU recipe minus the change
     if a.anchor_sh0:
-        mc.CPU_RECIPE["anchor_sh0"] = True
+        recipe["anchor_sh0"] = True
     if a.latent_sh0:
-        mc.CPU_RECIPE["latent_sh0"] = True
+        recipe["latent_sh0"] = True
     if a.mlp_init is not None:
-        mc.CPU_RECIPE["mlp_init"] = a.mlp_init
+        recipe["mlp_init"] = a.mlp_init
     cfg = TrainConfig(
         dataset=a.dataset,
         out=a.out / a.name,
         preset="small",
-        steps=a.steps,
-        correctives_step=a.correctives_step,
-        image_scale=a.image_scale,
+        model=model_preset("small").replace(**recipe),  # the small model with the recipe above, no module patched
+        schedule=Schedule(
+            steps=a.steps,
+            correctives_step=a.correctives_step,
+            image_scale=a.image_scale,
+            checkpoint_every=10**9,
+            basis_lr_scale=a.basis_lr_scale or None,
+            vae_noise_step={-2: None, -1: "never"}.get(a.vae_noise_step, a.vae_noise_step),
+        ),
         lpips="off",
-        checkpoint_every=10**9,
         log_every=100,
-        basis_lr_scale=a.basis_lr_scale,
-        vae_noise_step=a.vae_noise_step,
     )
     tr = Trainer(cfg)
     if a.anchor_lr_scale is not None:
         for g in tr.optim.param_groups:
             if g["name"] == "sh0_anchor_basis":
-                g["lr"] *= a.anchor_lr_scale / tr.cfg.basis_lr_scale
+                g["lr"] *= a.anchor_lr_scale / tr.cfg.schedule.basis_lr_scale
     t = time.perf_counter()
     tr.train()
     seconds = time.perf_counter() - t
@@ -93,10 +97,10 @@ def main() -> None:
         json.dumps(
             {
                 "name": a.name,
-                "recipe": mc.CPU_RECIPE,
-                "basis_lr_scale": tr.cfg.basis_lr_scale,
+                "recipe": recipe,
+                "basis_lr_scale": tr.cfg.schedule.basis_lr_scale,
                 "anchor_lr_scale": a.anchor_lr_scale,
-                "vae_noise_step": tr.cfg.vae_noise_step,
+                "vae_noise_step": tr.cfg.schedule.vae_noise_step,
                 "steps": a.steps,
                 "latent_gain_db": round(res["latent_gain_db"], 4),
                 "frame_dependence": round(res.get("frame_dependence", {}).get("ratio", float("nan")), 4),

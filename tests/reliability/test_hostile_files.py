@@ -296,8 +296,12 @@ RUN_CONFIGS: dict[str, tuple[Callable[[Env], Path], tuple[str, ...]]] = {
     "run config.json that is not JSON": (lambda e: run_copy(e, '{"train": [1, 2'), ("config.json", "invalid JSON")),
     "run config.json that is a list": (lambda e: run_copy(e, "[]"), ("config.json", "train", "missing")),
     "run config.json with a string step count": (
+        lambda e: run_copy(e, edit=lambda o: o["train"]["schedule"].update(steps="many")),
+        ("config.json", "train.schedule.steps", "'many'"),
+    ),
+    "run config.json of the old flat layout with a string step count": (
         lambda e: run_copy(e, edit=lambda o: o["train"].update(steps="many")),
-        ("config.json", "train.steps", "'many'"),
+        ("config.json", "train.schedule.steps", "'many'"),
     ),
     "run config.json with a boolean preset": (
         lambda e: run_copy(e, edit=lambda o: o["train"].update(preset=True)),
@@ -521,10 +525,13 @@ def test_driving_motion_reads_only_its_arrays(tmp_path, tiny_capture):
 
 
 def test_train_config_round_trips_through_json():
-    from gsavatar.runs.config import TrainConfig, from_json, resolve, to_json
+    from gsavatar.runs.config import Schedule, TrainConfig, from_json, resolve, to_json
 
-    cfg = resolve(TrainConfig(dataset=Path("ds"), out=Path("run"), lpips_weights=Path("w.pth"), image_scale=0.5))
-    assert from_json(json.loads(json.dumps(to_json(cfg))), "config.json") == cfg
+    cfg = TrainConfig(
+        dataset=Path("ds"), out=Path("run"), lpips_weights=Path("w.pth"), schedule=Schedule(image_scale=0.5)
+    )
+    cfg = resolve(cfg)
+    assert from_json(json.loads(json.dumps(to_json(cfg))), "config.json", model=cfg.model.to_json()) == cfg
     with pytest.raises(SchemaError, match="train.deterministic"):
         from_json({**to_json(cfg), "deterministic": 1}, "config.json")
 

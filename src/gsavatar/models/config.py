@@ -123,7 +123,7 @@ class ModelConfig:
     follows the latent directly instead of through the pose-and-latent MLP, so it cannot answer a pose it
     saw with a colour it saw (docs/train.md). Needs ``use_latent`` (ignored without a latent). CPU presets:
     on (on ``small`` it raised the frame dependence from 0.23 to 0.89 at the same latent gain); ``paper``: off."""
-    mlp_init: str = "linear"
+    mlp_init: Literal["linear", "he"] = "linear"
     """Anchor-MLP init (:class:`~gsavatar.models.mlp.AnchorMLPs`): ``linear`` (``nn.Linear``'s, the
     paper's framework default) or ``he`` (variance-preserving). With ``linear`` the coefficients ``w``
     of unit-variance inputs have std ~0.01 through four layers, so the product ``<w, ΔΛ>`` with

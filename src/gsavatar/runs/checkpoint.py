@@ -11,6 +11,7 @@ checkpoint is complete, so ``kill -9`` at any point leaves a loadable file.
 from __future__ import annotations
 
 import io
+from collections.abc import Callable
 import json
 from pathlib import Path
 
@@ -61,13 +62,15 @@ def load_checkpoint(
     config: dict | None = None,
     strict_config_keys: tuple[str, ...] = (),
     defaults: dict[str, dict] | None = None,
+    upgrade: Callable[[dict], dict] | None = None,
 ) -> dict:
     """Load safely (``weights_only=True``) and check format and, for ``strict_config_keys``, the config.
 
     ``defaults``: per strict key, the values of config fields added since a checkpoint was written (a field
     missing from the saved dict counts as its default, so adding a field with a default that keeps the old
     behaviour does not orphan earlier runs). Raises SchemaError naming the file and the first mismatching
-    config field, e.g. a checkpoint of another model size or another dataset.
+    config field, e.g. a checkpoint of another model size or another dataset. ``upgrade``: brings a saved
+    config of an earlier layout into today's before the comparison (:func:`gsavatar.runs.config.upgrade_run_json`).
     """
     path = Path(path)
     if not path.exists():
@@ -92,6 +95,8 @@ def load_checkpoint(
     saved = parse_json_text(state["config"], path)
     if not isinstance(saved, dict):
         raise SchemaError(path, "config", f"expected a JSON object, got {type(saved).__name__}")
+    if upgrade is not None:
+        saved = upgrade(saved)
     state["config"] = saved
     if config is not None:
         for key in strict_config_keys:
@@ -138,3 +143,31 @@ def _get(d: dict, dotted: str):
             return None
         d = d[k]
     return d
+
+
+def load_optimizer_by_group_name(optim: torch.optim.Optimizer, saved: dict, path: str | Path) -> None:
+    """``optim.load_state_dict(saved)`` with the saved parameter groups matched to the optimiser's by their
+    ``name`` (not by position): a checkpoint written when the groups came in another order (the property table,
+    models/properties.py, changed it) or had fewer groups (a property added since: it starts without state)
+    resumes onto the right parameters. Groups without names fall back to position. SchemaError(path,
+    ``optimizer``) when a named group's parameter count differs."""
+    groups = optim.param_groups
+    saved_groups = saved.get("param_groups", [])
+    if not all("name" in g for g in groups) or not all(isinstance(g, dict) and "name" in g for g in saved_groups):
+        optim.load_state_dict(saved)
+        return
+    by_name = {g["name"]: g for g in saved_groups}
+    fresh_id = max((i for g in saved_groups for i in g["params"]), default=-1) + 1
+    ordered = []
+    for g in groups:
+        s = by_name.get(g["name"])
+        if s is None:  # new since the checkpoint: the current hyper-parameters, no state
+            s = {k: v for k, v in g.items() if k != "params"}
+            s["params"] = list(range(fresh_id, fresh_id + len(g["params"])))
+            fresh_id += len(g["params"])
+        elif len(s["params"]) != len(g["params"]):
+            raise SchemaError(
+                path, f"optimizer.{g['name']}", f"{len(s['params'])} parameters saved, the model has {len(g['params'])}"
+            )
+        ordered.append(s)
+    optim.load_state_dict({**saved, "param_groups": ordered})

@@ -18,14 +18,7 @@ from gsavatar.models.config import ModelConfig
 from gsavatar.models.net import AvatarNet, build_net
 from gsavatar.models.predictor import KINEMATICS_KEYS, LEGACY_CONFIG, AppearancePredictor, PredictorConfig
 from gsavatar.runs.checkpoint import check_same_dataset, load_checkpoint
-from gsavatar.runs.config import (
-    TrainConfig,
-    check_train_config,
-    from_json,
-    model_config,
-    model_config_from_json,
-    resolve,
-)
+from gsavatar.runs.config import TrainConfig, check_train_config, from_json, resolve, upgrade_run_json
 from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.jsonio import dataclass_defaults, read_json
 
@@ -60,7 +53,8 @@ def load_run(run: str | Path, device: str = "auto") -> LoadedRun:
     saved = read_json(cfg_path)  # strict: duplicate keys, NaN, deep nesting, FIFOs are refused naming the file
     if not isinstance(saved, dict) or "train" not in saved:
         raise SchemaError(cfg_path, "train", "missing (not the config.json of a gsavatar run)")
-    cfg = from_json(saved["train"], cfg_path)
+    # the model the run was trained with (config.json), not today's preset: presets may change between versions
+    cfg = from_json(saved["train"], cfg_path, model=saved.get("model"))
     try:
         check_train_config(cfg)
     except ValueError as e:
@@ -68,12 +62,14 @@ def load_run(run: str | Path, device: str = "auto") -> LoadedRun:
     cfg = resolve(cfg)
     dev = pick_device(device)
     scene = load_scene(cfg.dataset)
-    # the model the run was trained with (config.json), not today's preset: presets may change between versions
-    mcfg = model_config_from_json(saved["model"], cfg_path) if "model" in saved else model_config(cfg)
-    net = build_net(scene, mcfg, cfg.seed).to(dev)
+    net = build_net(scene, cfg.model, cfg.seed).to(dev)
     ckpt = run / "checkpoints" / "latest.pt"
     state = load_checkpoint(
-        ckpt, saved, strict_config_keys=("model",), defaults={"model": dataclass_defaults(ModelConfig)}
+        ckpt,
+        saved,
+        strict_config_keys=("model",),
+        defaults={"model": dataclass_defaults(ModelConfig)},
+        upgrade=upgrade_run_json,
     )
     check_same_dataset(ckpt, state["config"], cfg.dataset, dataset_fingerprint(cfg.dataset))
     net.load_state_dict(state["modules"]["net"])

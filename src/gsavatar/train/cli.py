@@ -10,17 +10,19 @@ avatar-train predictor --run runs/tiny          # the autoregressive appearance 
 
 from __future__ import annotations
 
-import dataclasses
 import json
+import sys
+import typing
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import torch
 import tyro
 
 from gsavatar.models.ply import export_frame_ply
-from gsavatar.runs.config import TrainConfig, model_config
+from gsavatar.models.config import VARIANTS, PresetName
+from gsavatar.runs.config import TrainConfig, model_config, preset_config
 from gsavatar.runs.load import load_run
 from gsavatar.train.predictor_cli import Predictor
 from gsavatar.train.runs import evaluate_run, posed_output, render_turntable, train_and_evaluate
@@ -30,9 +32,13 @@ from gsavatar.utils.paths import add_output_root
 
 
 @dataclass
-class Avatar(TrainConfig):
-    """Train the avatar (encoder latents) on a prepared dataset; resumes from the run's latest checkpoint."""
+class Avatar:
+    """Train the avatar (encoder latents) on a prepared dataset; resumes from the run's latest checkpoint.
+    Every model and schedule field is a flag (``--model.hidden 64 64``, ``--schedule.correctives-step 200``),
+    starting from the ``--preset``'s values with the ``--variant`` applied."""
 
+    train: Annotated[TrainConfig, tyro.conf.arg(name="")]
+    """The run's configuration (flags without a prefix; ``--model.*``, ``--schedule.*``, ``--losses.*``)."""
     evaluate: bool = True
     """Evaluate held-out cameras of training frames (and test frames) at the end."""
     force: bool = False
@@ -40,9 +46,33 @@ class Avatar(TrainConfig):
     ``config.json`` or ``metrics.jsonl`` is never overwritten). A run of ours is resumed without it."""
 
     def execute(self) -> None:
-        add_output_root(self.out)  # every write of this command stays in the run (cleared when it ends)
-        cfg = TrainConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(TrainConfig)})
-        train_and_evaluate(cfg, self.evaluate, force_out=self.force)
+        add_output_root(self.train.out)  # every write of this command stays in the run (cleared when it ends)
+        train_and_evaluate(self.train, self.evaluate, force_out=self.force)
+
+
+def _preset_default(argv: list[str]) -> Avatar:
+    """The default instance ``avatar-train avatar`` parses into: the ``--preset`` and ``--variant`` given in
+    ``argv`` (read first), their model and schedule spelt out, so every ``--model.*`` flag starts from the
+    values that apply and ``--help`` shows them. Unknown names are left to tyro, which lists the choices."""
+
+    def value(flag: str, default: str, choices: tuple[str, ...]) -> str:
+        for i, a in enumerate(argv):
+            got = (
+                a.split("=", 1)[1]
+                if a.startswith(flag + "=")
+                else argv[i + 1]
+                if a == flag and i + 1 < len(argv)
+                else None
+            )
+            if got is not None:
+                return got if got in choices else default
+        return default
+
+    preset = value("--preset", "tiny", typing.get_args(PresetName))
+    variant = value("--variant", "ours", tuple(VARIANTS))
+    # dataset/out are required flags: tyro still asks for them (MISSING), the defaults only fill the rest
+    train = preset_config(tyro.MISSING, tyro.MISSING, preset, variant)  # type: ignore[arg-type]
+    return Avatar(train=train)
 
 
 @dataclass
@@ -152,19 +182,19 @@ class Turntable:
 
 
 def main(argv: list[str] | None = None) -> int:
-    cmd = tyro.extras.subcommand_cli_from_dict(
-        {
-            "avatar": Avatar,
-            "eval": Eval,
-            "export": Export,
-            "turntable": Turntable,
-            "predictor": Predictor,
-            "view": Viewer,
-        },
-        prog="avatar-train",
-        description=__doc__,
-        args=argv,
-    )
+    args = sys.argv[1:] if argv is None else list(argv)
+    commands = {
+        "avatar": Avatar,
+        "eval": Eval,
+        "export": Export,
+        "turntable": Turntable,
+        "predictor": Predictor,
+        "view": Viewer,
+    }
+    if args[:1] == ["avatar"]:  # parsed into the --preset's default instance (_preset_default)
+        cmd = tyro.cli(Avatar, default=_preset_default(args[1:]), args=args[1:], prog="avatar-train avatar")
+    else:
+        cmd = tyro.extras.subcommand_cli_from_dict(commands, prog="avatar-train", description=__doc__, args=args)
     try:
         return run_reporting_errors(cmd.execute)  # one method name: Eval, Predictor... have a `run` field
     finally:

@@ -70,8 +70,8 @@ class PredictorTrainConfig:
     """Steps between checkpoints (and at the end)."""
     log_every: int = 50
     """Steps between log lines."""
-    max_steps_this_run: int = 0
-    """Stop after this many steps in this invocation (0 = run to the end); for tests of resuming."""
+    max_steps_this_run: int | None = None
+    """Stop after this many steps in this invocation (``None`` = run to the end); for tests of resuming."""
     model: PredictorConfig = field(default_factory=PredictorConfig)
     """Predictor hyper-parameters (``latent_dim`` is taken from the avatar run)."""
 
@@ -433,7 +433,7 @@ class PredictorTrainer:
     def train(self) -> dict:
         cfg = self.cfg
         self.out.mkdir(parents=True, exist_ok=True)
-        stop = cfg.steps if cfg.max_steps_this_run <= 0 else min(cfg.steps, self.step + cfg.max_steps_this_run)
+        stop = cfg.steps if cfg.max_steps_this_run is None else min(cfg.steps, self.step + cfg.max_steps_this_run)
         set_resume_hint(resume_hint(self.ckpt, self.step))
         t0, n0, logs = time.perf_counter(), self.step, {}
         self.model.train()

@@ -7,18 +7,23 @@ avatar-train predictor --run runs/small --steps 500 --window 8 --model.history 1
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
+
+import tyro
 
 from gsavatar.train.predictor import PredictorTrainConfig, train_predictor
 
 
 @dataclass(kw_only=True)
-class Predictor(PredictorTrainConfig):
+class Predictor:
     """Train the appearance predictor on a run's encoder latents; resumes from RUN/predictor/latest.pt."""
 
     run: Path
     """Avatar run directory written by ``avatar-train avatar`` (needs the appearance encoder)."""
+    train: Annotated[PredictorTrainConfig, tyro.conf.arg(name="")] = field(default_factory=PredictorTrainConfig)
+    """The predictor's training configuration (flags without a prefix; its model under ``--model.*``)."""
     out: Path | None = None
     """Output directory (default: RUN/predictor)."""
     device: str = "auto"
@@ -28,12 +33,8 @@ class Predictor(PredictorTrainConfig):
     force: bool = False
     """Write into a non-empty ``out`` that is not a gsavatar predictor output (refused otherwise)."""
 
-    def train_config(self) -> PredictorTrainConfig:
-        names = PredictorTrainConfig.__dataclass_fields__
-        return PredictorTrainConfig(**{k: getattr(self, k) for k in names})
-
     def execute(self) -> None:
         if not Path(self.run).is_dir():
             raise FileNotFoundError(f"run directory {self.run} does not exist")
-        res = train_predictor(self.run, self.train_config(), self.out, self.device, self.evaluate, force_out=self.force)
+        res = train_predictor(self.run, self.train, self.out, self.device, self.evaluate, force_out=self.force)
         print(json.dumps(res, indent=1))

@@ -34,7 +34,7 @@ def train_and_evaluate(cfg: TrainConfig, evaluate: bool = True, force_out: bool 
     summary = tr.train()
     if tr.rank == 0:
         print(f"[train] {summary['step']} steps in {summary['seconds']:.0f}s this run")
-    if evaluate and tr.rank == 0 and tr.step >= tr.cfg.steps:
+    if evaluate and tr.rank == 0 and tr.step >= tr.cfg.schedule.steps:
         res = evaluate_run(tr.out, tr.cfg.eval_frames, loaded=LoadedRun(tr.net, tr.scene, tr.cfg, tr.step))
         print(json.dumps(res, indent=1))
         return res
@@ -65,7 +65,7 @@ def evaluate_run(run: Path, eval_frames: int = 8, loaded: LoadedRun | None = Non
             "train",
             cameras=cams,
             frames=frames,
-            image_scale=cfg.image_scale,
+            image_scale=cfg.schedule.image_scale,
             with_texture=net.encoder is not None,
             texture_source=cfg.texture_source,
         )
@@ -77,7 +77,9 @@ def evaluate_run(run: Path, eval_frames: int = 8, loaded: LoadedRun | None = Non
         # the training frames' mean latent. ~0 dB means the avatar ignores its latents.
         mean_lat = mean_train_latent(net, scene, dev, cfg.texture_source)
         frames, cams = sets["test_frames_heldout_cams"]
-        data = ViewDataset(scene, "train", cameras=cams, frames=frames, image_scale=cfg.image_scale, with_texture=False)
+        data = ViewDataset(
+            scene, "train", cameras=cams, frames=frames, image_scale=cfg.schedule.image_scale, with_texture=False
+        )
         r = evaluate_views(net, data, dev, sh, cfg.backend, latents_fn=lambda f: mean_lat)
         results["test_frames_heldout_cams_mean_latent"] = r
         results["latent_gain_db"] = results["test_frames_heldout_cams"]["psnr_fg"] - r["psnr_fg"]

@@ -20,8 +20,14 @@ from gsavatar.models.batch import FrameBatch
 from gsavatar.models.config import LearningRates, ModelConfig
 from gsavatar.models.kernels import path_report
 from gsavatar.models.net import build_net
-from gsavatar.runs.checkpoint import check_same_dataset, load_checkpoint, resume_hint, save_checkpoint
-from gsavatar.runs.config import TrainConfig, model_config, resolve, to_json
+from gsavatar.runs.checkpoint import (
+    check_same_dataset,
+    load_checkpoint,
+    load_optimizer_by_group_name,
+    resume_hint,
+    save_checkpoint,
+)
+from gsavatar.runs.config import TrainConfig, resolve, to_json, upgrade_run_json
 from gsavatar.runs.load import pick_device
 from gsavatar.runs.views import render_views
 from gsavatar.train import losses as L
@@ -65,7 +71,7 @@ class Trainer:
         self.dataset_id = dataset_fingerprint(Path(self.cfg.dataset))
         if self.rank == 0:  # before the checkpoint is read or anything written; only rank 0 writes into the run
             claim_output_dir(self.out, "run", force_out)
-        self.mcfg = model_config(self.cfg)
+        self.mcfg = self.cfg.model  # resolved: the preset's with the variant, or the run's own
         self.net = build_net(self.scene, self.mcfg, self.cfg.seed).to(self.device)
         self.ddp = self.net
         if self.world > 1:
@@ -74,7 +80,7 @@ class Trainer:
         groups = self.net.avatar.param_groups(lrs)
         for g in groups:  # CPU presets: faster corrective bases (TrainConfig.basis_lr_scale)
             if g["name"].endswith("_basis"):
-                g["lr"] *= self.cfg.basis_lr_scale
+                g["lr"] *= self.cfg.schedule.basis_lr_scale
         if self.net.encoder is not None:
             groups += self.net.encoder.param_groups(lrs)
         # fused: one kernel per parameter instead of ~10 passes over the ~15M basis scalars (55 -> 10 ms per
@@ -90,7 +96,7 @@ class Trainer:
         self.data = ViewDataset(
             self.scene,
             "train",
-            image_scale=self.cfg.image_scale,
+            image_scale=self.cfg.schedule.image_scale,
             with_texture=self.mcfg.use_latent,
             texture_source=self.cfg.texture_source,
             cache_bytes=int(self.cfg.cache_max_gb * 2**30) if self.cfg.cache_views else 0,
@@ -111,12 +117,13 @@ class Trainer:
         state = load_checkpoint(
             self.ckpt,
             self.config_json(),
-            strict_config_keys=("model", "train.seed", "train.batch_size"),
+            strict_config_keys=("model", "train.seed", "train.schedule.batch_size"),
+            upgrade=upgrade_run_json,
             defaults={"model": dataclass_defaults(ModelConfig)},
         )
         check_same_dataset(self.ckpt, state["config"], Path(self.cfg.dataset), self.dataset_id)
         self.net.load_state_dict(state["modules"]["net"])
-        self.optim.load_state_dict(state["optimizer"])
+        load_optimizer_by_group_name(self.optim, state["optimizer"], self.ckpt)  # groups matched by name
         self.step = int(state["step"])
         if self.rank == 0:
             print(f"[train] resumed from {self.ckpt} at step {self.step}")
@@ -131,7 +138,8 @@ class Trainer:
 
     # ------------------------------------------------------------------ one step
     def sh_degree(self, step: int) -> int:
-        return self.mcfg.sh_degree if step >= int(self.cfg.sh_increase_fraction * self.cfg.steps) else 0
+        sch = self.cfg.schedule
+        return self.mcfg.sh_degree if step >= int(sch.sh_increase_fraction * sch.steps) else 0
 
     def backgrounds(self, gens: list[torch.Generator]) -> Tensor:
         if self.cfg.background == "random":
@@ -143,13 +151,13 @@ class Trainer:
         b = {k: v.to(dev) for k, v in batch.items()}
         gens = [step_generator(self.cfg.seed, step, p) for p in positions]
         eps = None
-        noise = self.cfg.vae_noise_step >= 0 and step >= self.cfg.vae_noise_step
+        noise = self.cfg.schedule.vae_noise_step != "never" and step >= self.cfg.schedule.vae_noise_step
         if self.net.encoder is not None and noise:
             S = b["texture"].shape[-1]
             h = S // self.net.encoder.downsample
             eps = torch.stack([torch.randn(self.mcfg.latent_dim, h, h, generator=g) for g in gens]).to(dev)
         sh = self.sh_degree(step)
-        correctives = step >= self.cfg.correctives_step
+        correctives = step >= self.cfg.schedule.correctives_step
         net_out = self.ddp(FrameBatch.from_dict(b), sh_degree=sh, correctives=correctives, eps=eps)
         bg = self.backgrounds(gens)
         H, W = b["image"].shape[-2:]
@@ -174,9 +182,9 @@ class Trainer:
         return total, logs
 
     def train(self) -> dict:
-        cfg = self.cfg
+        cfg, sch = self.cfg, self.cfg.schedule
         sampler = StepBatchSampler(
-            len(self.data), cfg.batch_size, cfg.seed, self.step, cfg.steps, self.rank, self.world
+            len(self.data), sch.batch_size, cfg.seed, self.step, sch.steps, self.rank, self.world
         )
         positions = sampler.positions()
         loader = DataLoader(
@@ -188,7 +196,7 @@ class Trainer:
         log_path = self.out / "metrics.jsonl"
         if self.rank == 0:
             trim_log(log_path, self.step)
-        stop_at = cfg.steps if cfg.max_steps_this_run <= 0 else min(cfg.steps, self.step + cfg.max_steps_this_run)
+        stop_at = sch.steps if cfg.max_steps_this_run is None else min(sch.steps, self.step + cfg.max_steps_this_run)
         set_resume_hint(resume_hint(self.ckpt, self.step))
         t0, n0 = time.perf_counter(), self.step
         last: dict[str, float] = {}
@@ -213,11 +221,11 @@ class Trainer:
                 with open(log_path, "a") as f:
                     f.write(json.dumps(line) + "\n")
                 print(
-                    f"[train] step {self.step}/{cfg.steps} loss {logs['total']:.4f} l1 {logs['l1']:.4f} "
+                    f"[train] step {self.step}/{sch.steps} loss {logs['total']:.4f} l1 {logs['l1']:.4f} "
                     f"({rate:.2f} steps/s)",
                     flush=True,
                 )
-            if self.step % cfg.checkpoint_every == 0 or self.step == stop_at:
+            if self.step % sch.checkpoint_every == 0 or self.step == stop_at:
                 self.save()
         seconds = time.perf_counter() - t0
         if self.rank == 0 and self.step > n0:
