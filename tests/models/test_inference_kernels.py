@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from gsavatar.models.properties import GAUSSIAN_PROPERTIES, packed_layout
 from gsavatar.models import GaussianAvatar, ModelConfig, model_preset
 from gsavatar.models import gaussians as gm
 from gsavatar.models import kernels
@@ -27,35 +28,42 @@ def make(prep, cfg: ModelConfig | None = None, randomize: bool = False) -> Gauss
     return av
 
 
-def _interp_case(dtype, B=2, G=300, A=12, K=16, R=3, seed=0):
+LAYOUT = packed_layout(GAUSSIAN_PROPERTIES, ModelConfig(sh_degree=1))  # position, scale, rotation, sh0, 3 SH bands
+
+
+DIMS = {"position": (3,), "scale": (3,), "rotation": (4,), "sh0": (3,), "shn": (3, 3)}  # the table's at SH degree 1
+
+
+def _interp_case(dtype, B=2, G=300, A=12, K=16, seed=0):
+    """Random coefficients, interpolation weights, one basis per row of LAYOUT (in its order) and anchor SH0."""
     g = torch.Generator().manual_seed(seed)
     idx = torch.randint(0, A, (G, 3), generator=g)
     w = torch.rand(G, 3, generator=g, dtype=dtype)
     W = gm.interpolation_matrix(idx, w / w.sum(1, keepdim=True), A)
-    bases = [torch.randn(G, K, d, generator=g, dtype=dtype) for d in (3, 3, 4, 3)]
-    shn = torch.randn(G, K, R, 3, generator=g, dtype=dtype)
+    bases = [torch.randn(G, K, *DIMS[n], generator=g, dtype=dtype) for n in LAYOUT.names]
     coeffs = torch.randn(B, A, K, generator=g, dtype=dtype)
     extra = torch.randn(B, A, 3, generator=g, dtype=dtype)
-    return coeffs, W, bases, shn, extra
+    return coeffs, W, bases, extra
 
 
-def _interp_reference(coeffs, W, bases, shn, n_rest, extra):
+def _interp_reference(coeffs, W, bases, n_rest, extra):
+    """Interpolate ``w``, then one einsum per basis; the anchor row adds the interpolated ``extra``."""
     w = torch.sparse.mm(W, coeffs.transpose(0, 1).reshape(W.shape[1], -1)).reshape(W.shape[0], coeffs.shape[0], -1)
     w = w.transpose(0, 1)  # [B, G, K]
-    out = [torch.einsum("bnk,nkd->bnd", w, b) for b in bases]
-    if extra is not None:
-        out[3] = out[3] + gm.sparse_interpolate(extra, W, compiled=False)
-    out.append(torch.einsum("bnk,nkrc->bnrc", w, shn[:, :, :n_rest]))
+    out = {}
+    for name, b, offset in zip(LAYOUT.names, bases, LAYOUT.offsets):
+        b = b[:, :, :n_rest] if name == "shn" else b
+        out[name] = torch.einsum("bnk,nk...->bn...", w, b)
+        if extra is not None and offset == LAYOUT.anchor_at:
+            out[name] = out[name] + gm.sparse_interpolate(extra, W, compiled=False)
     return out
 
 
-def _packed(bases, shn):
-    """The bases side by side in one tensor, as GaussianAvatar.pack_bases_ lays them out (views of it)."""
-    G, K = shn.shape[:2]
-    flat = torch.cat([*bases, shn.reshape(G, K, -1)], 2)
-    return [flat[:, :, 0:3], flat[:, :, 3:6], flat[:, :, 6:10], flat[:, :, 10:13]], flat[:, :, 13:].unflatten(
-        2, shn.shape[2:]
-    )
+def _packed(bases):
+    """The bases side by side in one tensor in LAYOUT's columns, as GaussianAvatar.pack_bases_ lays them out."""
+    G, K = bases[0].shape[:2]
+    flat = torch.cat([b.reshape(G, K, -1) for b in bases], 2)
+    return [flat[:, :, o : o + w].unflatten(2, b.shape[2:]) for b, o, w in zip(bases, LAYOUT.offsets, LAYOUT.widths)]
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -63,43 +71,43 @@ def _packed(bases, shn):
 @pytest.mark.parametrize("n_rest", [0, 2, 3])
 @pytest.mark.parametrize("with_extra", [False, True])
 def test_interpolated_deltas_match_interpolation_then_products(dtype, packed, n_rest, with_extra):
-    coeffs, W, bases, shn, extra = _interp_case(dtype)
+    coeffs, W, bases, extra = _interp_case(dtype)
     extra = extra if with_extra else None
     if packed:
-        bases, shn = _packed(bases, shn)
-    assert (kernels.packed_bases(*bases, shn) is not None) == packed
+        bases = _packed(bases)
+    assert (kernels.packed_bases(bases, LAYOUT) is not None) == packed
     with torch.no_grad():
-        got = kernels.interpolated_deltas_fast(coeffs, W, *bases, shn, n_rest, extra)
+        got = kernels.interpolated_deltas_fast(coeffs, W, bases, LAYOUT, n_rest, extra)
     if not packed:  # separate bases: the caller takes the per-basis products (the oracle below)
         assert got is None
         return
-    want = _interp_reference(coeffs, W, bases, shn, n_rest, extra)
+    want = _interp_reference(coeffs, W, bases, n_rest, extra)
     tol = {"rtol": 1e-5, "atol": 1e-5} if dtype == torch.float32 else {"rtol": 1e-12, "atol": 1e-12}
-    assert got is not None and len(got) == 5
-    for a, b in zip(got, want):
-        assert a.shape == b.shape
-        torch.testing.assert_close(a, b, **tol)
+    assert got is not None and set(got) == set(want) - ({"shn"} if not n_rest else set())  # no bands asked: none
+    for name, b in got.items():
+        assert b.shape == want[name].shape
+        torch.testing.assert_close(b, want[name], **tol)
 
 
 def test_interpolated_deltas_decline_with_gradients_or_mixed_dtypes():
-    coeffs, W, bases, shn, extra = _interp_case(torch.float32)
-    bases, shn = _packed(bases, shn)
+    coeffs, W, bases, extra = _interp_case(torch.float32)
+    bases = _packed(bases)
+    fast = kernels.interpolated_deltas_fast
     with torch.no_grad():
-        assert kernels.interpolated_deltas_fast(coeffs, W, *bases, shn, 3, extra) is not None
-    assert kernels.interpolated_deltas_fast(coeffs, W, *bases, shn, 3, extra) is None  # grad mode on
+        assert fast(coeffs, W, bases, LAYOUT, 3, extra) is not None
+    assert fast(coeffs, W, bases, LAYOUT, 3, extra) is None  # grad mode on
     with torch.no_grad():
-        assert kernels.interpolated_deltas_fast(coeffs.double(), W, *bases, shn, 3, extra) is None
-        assert kernels.interpolated_deltas_fast(coeffs, W, *bases, shn, 4, extra) is None  # more bands than bases
-        assert kernels.interpolated_deltas_fast(coeffs[..., :0], W, *[b[:, :0] for b in bases], shn[:, :0], 3) is None
+        assert fast(coeffs.double(), W, bases, LAYOUT, 3, extra) is None
+        assert fast(coeffs, W, bases, LAYOUT, 4, extra) is None  # more bands than bases
+        assert fast(coeffs[..., :0], W, [b[:, :0] for b in bases], LAYOUT, 3) is None
 
 
 def test_packed_views_must_line_up():
-    coeffs, W, bases, shn, _ = _interp_case(torch.float32)
-    bases, shn = _packed(bases, shn)
-    views = [*bases, shn]
-    assert kernels.packed_bases(*views) is not None
+    coeffs, W, bases, _ = _interp_case(torch.float32)
+    views = _packed(bases)
+    assert kernels.packed_bases(views, LAYOUT) is not None
     swapped = [views[1], views[0], *views[2:]]  # wrong order: not the packed layout
-    assert kernels.packed_bases(*swapped) is None
+    assert kernels.packed_bases(swapped, LAYOUT) is None
 
 
 def _posing_case(dtype, B=2, G=400, J=6, seed=0, spread=0.6):
@@ -200,16 +208,16 @@ def test_packing_keeps_values_parameters_and_training(prep):
     assert {n: id(p) for n, p in av.named_parameters()} == ids
     for n, p in av.named_parameters():
         torch.testing.assert_close(p.detach(), before[n], rtol=0, atol=0)
-    assert kernels.packed_bases(*(getattr(av, n) for n in av.PACKED_BASES)) is not None
+    assert kernels.packed_bases([getattr(av, n) for n in av.packed_bases], av.packed_layout()) is not None
     # an optimiser step on the views writes through to the packed storage, and the state dict round-trips
     rig = prep[0]
     opt = torch.optim.AdamW(av.param_groups(), eps=1e-15)
     out = av(torch.randn(1, rig.pose_dim) * 0.3, torch.zeros(1, 3), torch.zeros(1, 3))
     (out.means.square().sum() + out.sh.square().sum() + out.scales.sum() + out.quats[..., 1:].sum()).backward()
     opt.step()
-    for name in av.PACKED_BASES:
+    for name in av.packed_bases:
         assert not torch.equal(getattr(av, name).detach(), before[name]), name
-    assert kernels.packed_bases(*(getattr(av, n) for n in av.PACKED_BASES)) is not None
+    assert kernels.packed_bases([getattr(av, n) for n in av.packed_bases], av.packed_layout()) is not None
     other = make(prep)
     other.load_state_dict(av.state_dict())
     for n, p in other.named_parameters():

@@ -181,7 +181,7 @@ def test_variant_names_come_from_the_table():
 class ScaleOnlyHead(PoseHead):
     """A toy variant: one linear map of the pose to every Gaussian's log-scale delta."""
 
-    def __init__(self, config, hierarchy, pose_dim, generator) -> None:
+    def __init__(self, config, hierarchy, pose_dim, generator, properties) -> None:
         super().__init__()
         self.lin = torch.nn.Linear(pose_dim, hierarchy.num_gaussians * 3)
 

@@ -8,7 +8,8 @@ Per frame (pose head ``ours``), every anchor MLP maps ``[θ̂_i, φ̂_i, l_i]`` 
 masked face embedding, appearance latent) to ``n_basis`` Gaussian and
 ``n_ctrl_basis`` control-point coefficients. Gaussians and control points
 interpolate them from their 3 nearest anchors. Gaussian properties
-``p = h(λ + <w, ΔΛ>)``:
+``p = h(λ + <w, ΔΛ>)``, one row each of the property table
+(:data:`gsavatar.models.properties.GAUSSIAN_PROPERTIES`, which builds the parameters below):
 
 ==================  ======  =====================  ===================================
 property            dims    basis                  activation h
@@ -49,6 +50,16 @@ from gsavatar.geometry.lbs import RigTensors, skinning_transforms
 from gsavatar.models import gaussians as gm
 from gsavatar.models.config import INPUT_STD_FLOOR, LearningRates, ModelConfig
 from gsavatar.models.pose_heads import PoseDeltas, PoseHead, pose_head_class
+from gsavatar.models.properties import (
+    GAUSSIAN_PROPERTIES,
+    RENDERED,
+    GaussianProperty,
+    InitContext,
+    PackedLayout,
+    check_table,
+    packed_layout,
+    registration_order,
+)
 
 
 class AvatarOutput(NamedTuple):
@@ -146,33 +157,42 @@ class GaussianAvatar(nn.Module):
 
         # --- parameters ------------------------------------------------------------------
         gen = torch.Generator().manual_seed(seed)
-        K = cfg.num_sh
         self.latent_in = cfg.latent_dim if cfg.use_latent else 0
-        self.pose_head: PoseHead = head_cls(cfg, hierarchy, P, gen)
+        self.pose_head: PoseHead = head_cls(cfg, hierarchy, P, gen, self.PROPERTIES)
         Bg, Bc = self.pose_head.n_basis, self.pose_head.n_ctrl_basis  # 0: the head outputs its deltas directly
         log_s, q = gm.init_gaussian_params(g.position, g.normal, cfg.scale_max, cfg.init_normal_scale_ratio)
         z = lambda *s: nn.Parameter(torch.zeros(*s))  # noqa: E731
-        self.scale_bias = nn.Parameter(f32(log_s))  # [G, 3] log metres
-        self.scale_basis = z(G, Bg, 3)
-        self.rotation_bias = nn.Parameter(f32(q))  # [G, 4] wxyz, unnormalised
-        self.rotation_basis = z(G, Bg, 4)
-        o = float(np.log(cfg.init_opacity / (1 - cfg.init_opacity)))
-        self.opacity_bias = nn.Parameter(torch.full((G,), o))  # [G] logit
-        self.sh0_bias = z(G, 3)  # [G, 3] pre-tanh; 0 = grey (colour 0.5)
-        self.sh0_basis = z(G, Bg, 3)
-        self.shn_bias = z(G, K - 1, 3)  # [G, K-1, 3] pre-tanh
-        self.shn_basis = z(G, Bg, K - 1, 3)
-        self.gauss_pos_basis = z(G, Bg, 3)  # [G, Bg, 3] metres per coefficient
+        check_table(self.PROPERTIES)
+        ctx = InitContext(cfg, G, log_s, q)
+        for prop in registration_order(self.PROPERTIES):  # {bias} [G, *dims] (opacity: [G]), {basis} [G, Bg, *dims]
+            dims = prop.dims(cfg)
+            if prop.bias is not None:
+                shape = (G,) if prop.bias_squeeze else (G, *dims)
+                init = None if prop.init is None else prop.init(ctx)
+                setattr(self, prop.bias, z(*shape) if init is None else nn.Parameter(f32(init).reshape(shape)))
+            if prop.basis is not None:
+                setattr(self, prop.basis, z(G, Bg, *dims))
         self.ctrl_bias = z(C, 3)  # [C, 3] metres
         self.ctrl_basis = z(C, Bc, 3)
-        # ModelConfig.anchor_sh0: a colour basis per anchor, its delta interpolated to the Gaussians like ``w``
-        self.sh0_anchor_basis = z(A, Bg, 3) if cfg.anchor_sh0 and Bg else None  # [A, Bg, 3] pre-tanh
-        # ModelConfig.latent_sh0: latent -> colour delta per anchor, interpolated to the Gaussians
-        self.sh0_latent_basis = z(A, self.latent_in, 3) if cfg.latent_sh0 and self.latent_in else None  # [A, L, 3]
+        # the anchors' deltas of the row with anchor_terms (SH0), interpolated to the Gaussians like ``w``:
+        # ModelConfig.anchor_sh0: a basis per anchor; ModelConfig.latent_sh0: latent -> delta per anchor
+        at = next((p for p in self.PROPERTIES if p.anchor_terms), None)
+        da = () if at is None else at.dims(cfg)
+        self.sh0_anchor_basis = z(A, Bg, *da) if at and cfg.anchor_sh0 and Bg else None  # [A, Bg, 3] pre-tanh
+        self.sh0_latent_basis = z(A, self.latent_in, *da) if at and cfg.latent_sh0 and self.latent_in else None
 
     # --- helpers -------------------------------------------------------------------------
-    PACKED_BASES = ("gauss_pos_basis", "scale_basis", "rotation_basis", "sh0_basis", "shn_basis")
-    """The Gaussian corrective bases :meth:`pack_bases_` lays side by side, in order."""
+    PROPERTIES: tuple[GaussianProperty, ...] = GAUSSIAN_PROPERTIES
+    """The Gaussian properties this avatar learns (models/properties.py; a subclass may add rows)."""
+
+    @property
+    def packed_bases(self) -> tuple[str, ...]:
+        """The Gaussian corrective bases :meth:`pack_bases_` lays side by side: the table's rows with a basis."""
+        return tuple(p.basis for p in self.PROPERTIES if p.basis is not None)
+
+    def packed_layout(self) -> PackedLayout:
+        """Columns of each basis in the packed tensor (:func:`~gsavatar.models.properties.packed_layout`)."""
+        return packed_layout(self.PROPERTIES, self.config)
 
     def pack_bases_(self) -> bool:
         """Store the Gaussian corrective bases side by side in one ``[G, Bg, 13 + 3(K-1)]`` tensor, each
@@ -180,7 +200,7 @@ class GaussianAvatar(nn.Module):
         as one stream (:func:`~gsavatar.models.kernels.interpolated_deltas_fast`, ~1.5x faster on CPU).
         For inference (:func:`~gsavatar.runs.load.load_run` calls it); training works on the views too.
         ``.to()`` and the like unpack them again. Returns whether there was anything to pack."""
-        params = [getattr(self, n) for n in self.PACKED_BASES]
+        params = [getattr(self, n) for n in self.packed_bases]
         G, Bg = params[0].shape[:2]
         if Bg == 0 or G == 0:
             return False
@@ -312,10 +332,27 @@ class GaussianAvatar(nn.Module):
         Returns:
             AvatarOutput (see its fields)
         """
+        return self.evaluate(pose, root_rotation, root_translation, face, latents, sh_degree, correctives)[0]
+
+    def evaluate(
+        self,
+        pose: Tensor,
+        root_rotation: Tensor,
+        root_translation: Tensor,
+        face: Tensor | None = None,
+        latents: Tensor | None = None,
+        sh_degree: int | None = None,
+        correctives: bool = True,
+    ) -> tuple[AvatarOutput, dict[str, Tensor]]:
+        """:meth:`forward` and the activated properties of the table's rows the renderer does not read
+        (:data:`~gsavatar.models.properties.RENDERED`; models/properties.py), by name: [B, G, *dims]."""
         deg = self.config.sh_degree if sh_degree is None else int(sh_degree)
         self._validate(pose, root_rotation, root_translation, face, latents, deg)
         B, n_rest = pose.shape[0], (deg + 1) ** 2 - 1
         d = self.pose_head(self, pose, face, latents, n_rest) if correctives else PoseDeltas()
+        unknown = set(d.gauss) - {p.name for p in self.PROPERTIES}
+        if unknown:
+            raise ValueError(f"pose head gave deltas of {sorted(unknown)}, not properties of this avatar")
         ctrl_disp = gm.add_delta(self.ctrl_bias, d.ctrl, B)  # [B, C, 3]
         offset = gm.sparse_interpolate(
             ctrl_disp, self.sparse_weights("gauss_ctrl", ctrl_disp.device, ctrl_disp.dtype)
@@ -323,42 +360,62 @@ class GaussianAvatar(nn.Module):
         if d.position is not None:
             offset = offset + d.position
         canonical = self.rest_means[None] + offset  # [B, G, 3]
-
-        scales = gm.activate_scale(gm.add_delta(self.scale_bias, d.scale, B), self.config.scale_max)
-        quats_c = gm.activate_quat(gm.add_delta(self.rotation_bias, d.rotation, B))
-        opacities = torch.sigmoid(self.opacity_bias)[None].expand(B, -1)  # [B, G]
-        sh0 = gm.activate_sh0(gm.add_delta(self.sh0_bias, d.sh0, B))  # [B, G, 3]
-        if n_rest:
-            x = gm.add_delta(self.shn_bias[:, :n_rest], d.shn, B)  # [B, G, n_rest, 3]
-            sh = torch.cat([sh0[:, :, None], gm.activate_shn(x, self.config.shn_bound)], dim=2)  # [B, G, K, 3]
-        else:
-            sh = sh0[:, :, None]
+        values = self.activate(d, B, n_rest)  # [B, G, *dims] per property, the position offset excepted
+        sh0 = values["sh0"]  # [B, G, 3]
+        sh = torch.cat([sh0[:, :, None], values["shn"]], dim=2) if n_rest else sh0[:, :, None]  # [B, G, K, 3]
+        extras = {k: v for k, v in values.items() if k not in RENDERED}
 
         T = skinning_transforms(
             self.rig_tensors(pose.device, pose.dtype), pose, root_rotation, root_translation
         )  # [B, J, 4, 4]
         means, quats = gm.pose_lbs(
-            canonical, quats_c, T, self.skin_indices, self.skin_weights, self.sparse_weights("skin", T.device, T.dtype)
+            canonical,
+            values["rotation"],
+            T,
+            self.skin_indices,
+            self.skin_weights,
+            self.sparse_weights("skin", T.device, T.dtype),
         )
-        return AvatarOutput(means, quats, scales, opacities, sh, ctrl_disp, canonical)
+        return AvatarOutput(means, quats, values["scale"], values["opacity"], sh, ctrl_disp, canonical), extras
+
+    def activate(self, d: PoseDeltas, batch: int, n_sh_rest: int) -> dict[str, Tensor]:
+        """Every property of the table but the position offset: ``h(λ + Δ)`` (a row without a basis: ``h(λ)``
+        once, expanded over the batch; a row without a bias: ``h(Δ)``). SH bands rows keep the first
+        ``n_sh_rest`` bands (none: left out). -> name: [B, G, *dims]"""
+        cfg, out = self.config, {}
+        for p in self.PROPERTIES:
+            if p.name == "position":  # consumed by the canonical centres
+                continue
+            bias = None if p.bias is None else getattr(self, p.bias)
+            delta = d.gauss.get(p.name)
+            if p.shape is None:  # SH bands: the degree asked for
+                if not n_sh_rest:
+                    continue
+                bias = None if bias is None else bias[:, :n_sh_rest]
+            act = (lambda x: x) if p.activation is None else (lambda x, p=p: p.activation(x, cfg))
+            if p.basis is None:  # no pose delta: one activation, expanded over the frames
+                out[p.name] = act(bias)[None].expand(batch, *bias.shape)
+            elif bias is None:
+                if delta is None:
+                    raise ValueError(f"property {p.name!r} has no bias and the pose head gave no delta")
+                out[p.name] = act(delta)
+            else:
+                out[p.name] = act(gm.add_delta(bias, delta, batch))
+        return out
 
     # --- optimisation ----------------------------------------------------------------------
-    _GROUPS = (
-        ("scale_bias", "scale_bias"),
-        ("scale_basis", "scale_basis"),
-        ("rotation_bias", "rotation_bias"),
-        ("rotation_basis", "rotation_basis"),
-        ("opacity_bias", "opacity_bias"),
-        ("sh0_bias", "sh0_bias"),
-        ("sh0_basis", "sh0_basis"),
-        ("shn_bias", "shn_bias"),
-        ("shn_basis", "shn_basis"),
-        ("ctrl_bias", "ctrl_bias"),
-        ("ctrl_basis", "ctrl_basis"),
-        ("gauss_pos_basis", "gauss_pos_basis"),
-        ("sh0_anchor_basis", "sh0_basis"),
-        ("sh0_latent_basis", "sh0_basis"),
-    )
+    def _groups(self) -> list[tuple[str, str]]:
+        """(parameter, LearningRates field) of every parameter but the pose head's: the table's biases and bases,
+        the control points', the anchors' SH0 maps (at the rate of the SH0 basis)."""
+        biased, tail = [], []  # rows with a bias, the bias-less rows' bases (registration_order)
+        for p in registration_order(self.PROPERTIES):
+            rows = biased if p.bias is not None else tail
+            rows += [(p.bias, p.lr_bias)] if p.bias is not None else []
+            rows += [(p.basis, p.lr_basis)] if p.basis is not None else []
+        at = next((p for p in self.PROPERTIES if p.anchor_terms), None)
+        extra = [(n, at.lr_basis) for n in ("sh0_anchor_basis", "sh0_latent_basis")] if at is not None else []
+        # the control points' between the two: the groups' order before the table (checkpoints' optimiser states)
+        return [*biased, ("ctrl_bias", "ctrl_bias"), ("ctrl_basis", "ctrl_basis"), *tail, *extra]
 
     def param_groups(self, lrs: LearningRates | None = None) -> list[dict]:
         """AdamW parameter groups with the paper's per-property learning rates (supp. D.1).
@@ -377,7 +434,7 @@ class GaussianAvatar(nn.Module):
                 "weight_decay": lrs.mlp_weight_decay,
             }
         ]
-        for attr, lr_name in self._GROUPS:
+        for attr, lr_name in self._groups():
             p = getattr(self, attr)
             if p is not None and p.numel():
                 groups.append({"name": attr, "params": [p], "lr": getattr(lrs, lr_name), "weight_decay": 0.0})
@@ -390,6 +447,6 @@ class GaussianAvatar(nn.Module):
     def parameter_counts(self) -> dict[str, int]:
         """Number of scalars per parameter group (and ``total``)."""
         out = {"mlp": sum(p.numel() for p in self.pose_head.parameters())}
-        out.update({a: getattr(self, a).numel() for a, _ in self._GROUPS if getattr(self, a) is not None})
+        out.update({a: getattr(self, a).numel() for a, _ in self._groups() if getattr(self, a) is not None})
         out["total"] = sum(out.values())
         return out

@@ -20,12 +20,17 @@ devices, for autograd's double backward, and when numba is missing.
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from gsavatar.utils.compiled import numba, set_threads
+
+if TYPE_CHECKING:  # annotations only: properties -> gaussians -> kernels
+    from gsavatar.models.properties import PackedLayout
 
 _PATHS: dict[str, dict] = {}
 """Per fast path: how often the compiled kernel ran and how often its torch twin did, with the first reason."""
@@ -449,50 +454,54 @@ if numba is not None:
                         out[b, n, d] = acc[d]
 
 
-PACKED_WIDTHS = (3, 3, 4, 3)
-"""Leading widths of the packed Gaussian bases (position, scale, rotation, SH0; the higher SH bands follow)."""
-
-
 @visible_path("packed_bases")
-def packed_bases(position: Tensor, scale: Tensor, rotation: Tensor, sh0: Tensor, shn: Tensor) -> Tensor | None:
-    """The ``[G, K, 13 + 3R]`` tensor the five bases are views of (side by side in this order, as
+def packed_bases(bases: Sequence[Tensor], layout: PackedLayout) -> Tensor | None:
+    """The ``[G, K, D]`` tensor the bases are views of (side by side in the columns of ``layout``, as
     :meth:`~gsavatar.models.avatar.GaussianAvatar.pack_bases_` lays them out), or None if they are not."""
-    G, K = position.shape[:2]
-    D = sum(PACKED_WIDTHS) + 3 * shn.shape[2]
-    base = position.storage_offset()
-    offset = 0
-    for t, w in zip((position, scale, rotation, sh0, shn), (*PACKED_WIDTHS, 3 * shn.shape[2])):
-        want = (K * D, D, 1) if t.ndim == 3 else (K * D, D, 3, 1)
+    if not bases:
+        return None
+    first = bases[0]
+    G, K = first.shape[:2]
+    D = layout.size
+    base = first.storage_offset()
+    for t, offset in zip(bases, layout.offsets):
+        want = (K * D, D, *_inner_strides(t.shape[2:]))
         if (
-            t.untyped_storage().data_ptr() != position.untyped_storage().data_ptr()
+            t.untyped_storage().data_ptr() != first.untyped_storage().data_ptr()
             or t.shape[:2] != (G, K)
             or (t.numel() and (t.stride() != want or t.storage_offset() != base + offset))
         ):
             return None
-        offset += w
-    return position.as_strided((G, K, D), (K * D, D, 1), base)
+    return first.as_strided((G, K, D), (K * D, D, 1), base)
+
+
+def _inner_strides(dims: Sequence[int]) -> tuple[int, ...]:
+    """Row-major strides of the trailing ``dims`` of one Gaussian's slice (``(3,)`` -> ``(1,)``,
+    ``(R, 3)`` -> ``(3, 1)``)."""
+    out, step = [], 1
+    for d in reversed(tuple(dims)):
+        out.append(step)
+        step *= int(d)
+    return tuple(reversed(out))
 
 
 @visible_path("interpolated_deltas_fast")
 def interpolated_deltas_fast(
     coeffs: Tensor,
     matrix: Tensor,
-    position: Tensor,
-    scale: Tensor,
-    rotation: Tensor,
-    sh0: Tensor,
-    shn: Tensor,
+    bases: Sequence[Tensor],
+    layout: PackedLayout,
     n_sh_rest: int,
-    sh0_anchor: Tensor | None = None,
-) -> tuple[Tensor, ...] | None:
+    anchor_terms: Tensor | None = None,
+) -> dict[str, Tensor] | None:
     """Inference only: the Gaussians' pose-dependent deltas in one compiled pass over the Gaussians.
 
     Per Gaussian ``n`` and frame ``b``: ``w = (W @ coeffs[b])[n]`` (its anchors' coefficients
-    interpolated), then ``<w, ΔΛ[n]>`` for the position, scale, rotation, SH0 and the first
-    ``n_sh_rest`` higher SH bases, and SH0 also gets ``(W @ sh0_anchor[b])[n]``. The bases must lie side
-    by side in one tensor (:func:`packed_bases`, as :meth:`GaussianAvatar.pack_bases_` lays them out): each
-    Gaussian's products then run over 22 contiguous floats (vectorised; one pass over five separate bases
-    measured 9.7 ms against 5-7 ms, the five products 17.5 ms). The same numbers as
+    interpolated), then ``<w, ΔΛ[n]>`` for every basis of the property table (the SH bands' first
+    ``n_sh_rest``), and the row with anchor terms also gets ``(W @ anchor_terms[b])[n]``. The bases must lie
+    side by side in one tensor (:func:`packed_bases`, as :meth:`GaussianAvatar.pack_bases_` lays them out):
+    each Gaussian's products then run over 22 contiguous floats for the default table (vectorised; one pass
+    over five separate bases measured 9.7 ms against 5-7 ms, the five products 17.5 ms). The same numbers as
     :func:`sparse_interpolate_fast` followed by one :func:`basis_product` per basis (their oracle, up to
     summation order), without materialising ``w``. No autograd: None while gradients are enabled, for
     unpacked bases, and where the compiled path does not apply (not CPU, dtypes differ or not
@@ -501,14 +510,16 @@ def interpolated_deltas_fast(
     Args:
         coeffs: Tensor  # [B, A, K] anchor coefficients
         matrix: sparse COO  # [G, A] interpolation weights
-        position, scale, rotation, sh0: Tensor  # [G, K, 3], [G, K, 3], [G, K, 4], [G, K, 3] bases
-        shn: Tensor  # [G, K, R, 3] higher SH bases, R >= n_sh_rest
-        sh0_anchor: Tensor | None  # [B, A, 3] per-anchor SH0 deltas interpolated like ``w``
+        bases: Tensor per row of ``layout``  # [G, K, *dims] (the SH bands [G, K, R, 3], R >= n_sh_rest)
+        layout: the packed columns (:func:`gsavatar.models.properties.packed_layout`)
+        anchor_terms: Tensor | None  # [B, A, width] per-anchor deltas of the row at ``layout.anchor_at``
 
     Returns:
-        (position [B, G, 3], scale [B, G, 3], rotation [B, G, 4], sh0 [B, G, 3], shn [B, G, n_sh_rest, 3])
+        row name -> [B, G, *dims] (SH bands [B, G, n_sh_rest, 3]; left out when ``n_sh_rest`` is 0)
     """
-    tensors = (coeffs, position, scale, rotation, sh0, shn) + ((sh0_anchor,) if sh0_anchor is not None else ())
+    tensors = (coeffs, *bases) + ((anchor_terms,) if anchor_terms is not None else ())
+    sh_rows = [t.shape[2] for t, sh in zip(bases, layout.sh_bands) if sh]
+    anchor_width = layout.widths[layout.offsets.index(layout.anchor_at)] if layout.anchor_at >= 0 else 3
     if (
         torch.is_grad_enabled()
         or numba is None
@@ -517,10 +528,13 @@ def interpolated_deltas_fast(
         or any(t.device.type != "cpu" or t.dtype != coeffs.dtype for t in tensors)
         or coeffs.dtype not in (torch.float32, torch.float64)
         or 0 in coeffs.shape
-        or not 0 <= n_sh_rest <= shn.shape[2]
+        or len(bases) != len(layout.names)
+        or any(not 0 <= n_sh_rest <= r for r in sh_rows)
+        or (anchor_terms is not None and layout.anchor_at < 0)
+        or anchor_width != 3  # the kernel adds 3 anchor values (a colour)
     ):
         return None
-    packed = packed_bases(position, scale, rotation, sh0, shn)
+    packed = packed_bases(bases, layout)
     if packed is None:
         return None
     set_threads()
@@ -528,24 +542,23 @@ def interpolated_deltas_fast(
     B, G = coeffs.shape[0], crow.shape[0] - 1
     c = coeffs.detach().contiguous().numpy()
     extra = (
-        sh0_anchor.detach().contiguous().numpy() if sh0_anchor is not None else np.zeros((B, c.shape[1], 3), c.dtype)
+        anchor_terms.detach().contiguous().numpy()
+        if anchor_terms is not None
+        else np.zeros((B, c.shape[1], 3), c.dtype)
     )
     out = torch.empty(B, G, packed.shape[2], dtype=coeffs.dtype)
-    lead = sum(PACKED_WIDTHS)
+    at = max(layout.anchor_at, 0)  # no anchor row: zeros added to the first columns
     _interp_deltas_packed(
-        crow,
-        col,
-        val.astype(c.dtype, copy=False),
-        c,
-        extra,
-        packed.detach().numpy(),
-        sum(PACKED_WIDTHS[:3]),
-        out.numpy(),
+        crow, col, val.astype(c.dtype, copy=False), c, extra, packed.detach().numpy(), at, out.numpy()
     )
-    return (
-        *out[..., :lead].split(PACKED_WIDTHS, dim=-1),
-        out[..., lead : lead + 3 * n_sh_rest].unflatten(-1, (n_sh_rest, 3)),
-    )
+    deltas = {}
+    for t, name, offset, w, sh in zip(bases, layout.names, layout.offsets, layout.widths, layout.sh_bands):
+        if sh:  # the SH bands: the first n_sh_rest of them
+            if n_sh_rest:
+                deltas[name] = out[..., offset : offset + 3 * n_sh_rest].unflatten(-1, (n_sh_rest, 3))
+            continue
+        deltas[name] = out[..., offset : offset + w].unflatten(-1, tuple(t.shape[2:]))
+    return deltas
 
 
 class _BasisProduct(torch.autograd.Function):

@@ -15,7 +15,8 @@ mmlps      MMLPsHead        per anchor: the full pose, hands localized  coeffici
 conv_uv    UVDecoderHead    the full pose, one decoder in UV space      per-Gaussian deltas (no bases)
 =========  ===============  ==========================================  ===============================
 
-A head gets ``(config, hierarchy, pose_dim, generator)`` to build itself, says which pose
+A head gets ``(config, hierarchy, pose_dim, generator, properties)`` to build itself (``properties``: the
+avatar's property table), says which pose
 slots each anchor's input sees (:meth:`PoseHead.input_mask`) and how many corrective bases
 the avatar allocates for it (``n_basis``, ``n_ctrl_basis``), and maps a batch to
 :class:`PoseDeltas` in :meth:`PoseHead.forward`. Adding a variant: a head class here,
@@ -25,7 +26,8 @@ names it (docs/architecture.md).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -37,31 +39,35 @@ from gsavatar.models.config import ModelConfig
 from gsavatar.models.encoder import sample_at_uv
 from gsavatar.models.kernels import interpolated_deltas_fast
 from gsavatar.models.mlp import AnchorMLPs
+from gsavatar.models.properties import GAUSSIAN_PROPERTIES, GaussianProperty
 from gsavatar.models.uv_decoder import UVDecoder
 
 if TYPE_CHECKING:  # the avatar holds its head; the head reads the avatar's bases and inputs when called
     from gsavatar.models.avatar import GaussianAvatar
 
 
-class PoseDeltas(NamedTuple):
-    """Pose-dependent pre-activation deltas, added to the avatar's biases (None: no delta)."""
+class PoseDeltas:
+    """Pose-dependent pre-activation deltas, added to the avatar's biases: ``ctrl`` (control-point
+    displacement, metres, [B, C, 3]) and one per property of the table (:mod:`gsavatar.models.properties`) by
+    row name, e.g. ``position`` (canonical offset, metres), ``scale`` (log), ``rotation`` (unnormalised wxyz),
+    ``sh0`` (pre-tanh), ``shn`` (the first ``n_sh_rest`` higher SH bands): [B, G, *dims]. None / absent: no
+    delta. ``PoseDeltas(scale=x).scale`` is ``x``, ``PoseDeltas(scale=x).sh0`` None."""
 
-    ctrl: Tensor | None = None
-    """Control-point displacement, metres.  # [B, C, 3]"""
-    position: Tensor | None = None
-    """Canonical Gaussian offset, metres.  # [B, G, 3]"""
-    scale: Tensor | None = None
-    """Log-scale.  # [B, G, 3]"""
-    rotation: Tensor | None = None
-    """Unnormalised wxyz quaternion.  # [B, G, 4]"""
-    sh0: Tensor | None = None
-    """SH band 0, pre-tanh.  # [B, G, 3]"""
-    shn: Tensor | None = None
-    """The first ``n_sh_rest`` higher SH coefficients, pre-tanh.  # [B, G, n_sh_rest, 3]"""
+    __slots__ = ("ctrl", "gauss")
+
+    def __init__(self, ctrl: Tensor | None = None, **gauss: Tensor | None) -> None:
+        self.ctrl = ctrl
+        self.gauss: dict[str, Tensor] = {k: v for k, v in gauss.items() if v is not None}
+
+    def __getattr__(self, name: str) -> Tensor | None:  # a property's delta by attribute, None when absent
+        if name.startswith("_"):
+            raise AttributeError(name)
+        return self.gauss.get(name)
 
 
 class PoseHead(nn.Module):
-    """Base of the pose heads (module docstring). Subclasses take ``(config, hierarchy, pose_dim, generator)``."""
+    """Base of the pose heads (module docstring). Subclasses take ``(config, hierarchy, pose_dim, generator,
+    properties)``."""
 
     n_basis: int = 0
     """Gaussian corrective bases the avatar allocates per Gaussian for this head (``ΔΛ`` [G, n_basis, ...])."""
@@ -99,7 +105,14 @@ class AnchorMLPHead(PoseHead):
     control-point coefficients ``w``; Gaussians and control points interpolate them from their 3 nearest
     anchors, and the deltas are ``<w, ΔΛ>`` with the avatar's corrective bases."""
 
-    def __init__(self, config: ModelConfig, hierarchy: Hierarchy, pose_dim: int, generator: torch.Generator) -> None:
+    def __init__(
+        self,
+        config: ModelConfig,
+        hierarchy: Hierarchy,
+        pose_dim: int,
+        generator: torch.Generator,
+        properties: Sequence[GaussianProperty] = GAUSSIAN_PROPERTIES,
+    ) -> None:
         super().__init__()
         self.n_basis, self.n_ctrl_basis = int(config.n_basis), int(config.n_ctrl_basis)
         self.center_correctives = bool(config.center_correctives)
@@ -138,40 +151,32 @@ class AnchorMLPHead(PoseHead):
         w_c = gm.sparse_interpolate(coeffs[..., Bg:], avatar.sparse_weights("ctrl_anchor", dev, dt))  # [B, C, Bc]
         ctrl = gm.basis_delta(avatar.ctrl_basis, w_c)
         d_a = self.anchor_sh0(avatar, coeffs[..., :Bg], latents)  # [B, A, 3] or None, both paths use it
+        props = [p for p in avatar.PROPERTIES if p.basis is not None and (p.shape is not None or n_sh_rest)]
         fast = interpolated_deltas_fast(  # inference on CPU: one pass, same numbers (tests)
             coeffs[..., :Bg],
             avatar.sparse_weights("gauss_anchor", dev, dt),
-            avatar.gauss_pos_basis,
-            avatar.scale_basis,
-            avatar.rotation_basis,
-            avatar.sh0_basis,
-            avatar.shn_basis,
+            [getattr(avatar, n) for n in avatar.packed_bases],
+            avatar.packed_layout(),
             n_sh_rest,
             d_a,
         )
         if fast is not None:
-            pos, scale, rot, sh0, shn = fast
-            return PoseDeltas(
-                ctrl=ctrl, position=pos, scale=scale, rotation=rot, sh0=sh0, shn=shn if n_sh_rest else None
-            )
+            return PoseDeltas(ctrl=ctrl, **{p.name: fast[p.name] for p in props})
         w_g = gm.sparse_interpolate(coeffs[..., :Bg], avatar.sparse_weights("gauss_anchor", dev, dt))  # [B, G, Bg]
-        return PoseDeltas(
-            ctrl=ctrl,
-            position=gm.basis_delta(avatar.gauss_pos_basis, w_g),
-            scale=gm.basis_delta(avatar.scale_basis, w_g),
-            rotation=gm.basis_delta(avatar.rotation_basis, w_g),
-            sh0=self.sh0_delta(avatar, w_g, d_a),
-            shn=gm.basis_delta(avatar.shn_basis[:, :, :n_sh_rest], w_g) if n_sh_rest else None,
-        )
+        deltas = {}
+        for p in props:  # <w_g, ΔΛ> per property (SH bands: the first n_sh_rest)
+            basis = getattr(avatar, p.basis)
+            delta = gm.basis_delta(basis if p.shape is not None else basis[:, :, :n_sh_rest], w_g)
+            deltas[p.name] = self.with_anchor_terms(avatar, delta, d_a) if p.anchor_terms else delta
+        return PoseDeltas(ctrl=ctrl, **deltas)
 
     @staticmethod
-    def sh0_delta(avatar: GaussianAvatar, w_g: Tensor, d_a: Tensor | None) -> Tensor:
-        """``<w_g, ΔΛ_sh0>`` per Gaussian, plus the anchors' SH0 deltas ``d_a`` (:meth:`anchor_sh0`) interpolated
-        to the Gaussians. w_g [B, G, Bg], d_a [B, A, 3] or None -> [B, G, 3]"""
-        d = gm.basis_delta(avatar.sh0_basis, w_g)
+    def with_anchor_terms(avatar: GaussianAvatar, delta: Tensor, d_a: Tensor | None) -> Tensor:
+        """``delta`` plus the anchors' deltas ``d_a`` (:meth:`anchor_sh0`) interpolated to the Gaussians.
+        delta [B, G, 3], d_a [B, A, 3] or None -> [B, G, 3]"""
         if d_a is None:
-            return d
-        return d + gm.sparse_interpolate(d_a, avatar.sparse_weights("gauss_anchor", d_a.device, d_a.dtype))
+            return delta
+        return delta + gm.sparse_interpolate(d_a, avatar.sparse_weights("gauss_anchor", d_a.device, d_a.dtype))
 
     @staticmethod
     def anchor_sh0(avatar: GaussianAvatar, coeffs_g: Tensor, latents: Tensor | None = None) -> Tensor | None:
@@ -206,7 +211,14 @@ class UVDecoderHead(PoseHead):
     (:class:`~gsavatar.models.uv_decoder.UVDecoder`); every Gaussian reads its deltas of position, scale,
     rotation and SH at its own UV coordinate. No anchors, no corrective bases, no control-point deltas."""
 
-    def __init__(self, config: ModelConfig, hierarchy: Hierarchy, pose_dim: int, generator: torch.Generator) -> None:
+    def __init__(
+        self,
+        config: ModelConfig,
+        hierarchy: Hierarchy,
+        pose_dim: int,
+        generator: torch.Generator,
+        properties: Sequence[GaussianProperty] = GAUSSIAN_PROPERTIES,
+    ) -> None:
         super().__init__()
         uv = hierarchy.gaussians.uv
         if uv is None:
@@ -216,7 +228,9 @@ class UVDecoderHead(PoseHead):
             )
         self.face_dim = int(config.face_dim)
         self.register_buffer("gauss_uv", torch.as_tensor(np.asarray(uv), dtype=torch.float32))  # [G, 2] OBJ convention
-        self.split_sizes = [3, 3, 4, 3, (config.num_sh - 1) * 3]  # position, scale, rotation, SH0, higher SH
+        # one output channel per value of every property with a correction (position, scale, rotation, SH0, SH)
+        self.outputs = [(p.name, p.dims(config), p.shape is None) for p in properties if p.basis is not None]
+        self.split_sizes = [int(np.prod(dims)) for _, dims, _ in self.outputs]
         self.uv_decoder = UVDecoder(
             pose_dim + self.face_dim,
             sum(self.split_sizes),
@@ -231,9 +245,13 @@ class UVDecoderHead(PoseHead):
         if self.face_dim:
             x = torch.cat([x, face.to(x.dtype) if face is not None else x.new_zeros(x.shape[0], self.face_dim)], 1)
         vals = sample_at_uv(self.uv_decoder(x), self.gauss_uv)  # [B, G, n_out]
-        pos, scale, rot, sh0, shn = vals.split(self.split_sizes, dim=-1)
-        shn = shn.reshape(*shn.shape[:2], -1, 3)[:, :, :n_sh_rest] if n_sh_rest else None  # [B, G, n_sh_rest, 3]
-        return PoseDeltas(ctrl=None, position=pos, scale=scale, rotation=rot, sh0=sh0, shn=shn)
+        deltas = {}
+        for (name, dims, sh_bands), v in zip(self.outputs, vals.split(self.split_sizes, dim=-1)):
+            if sh_bands:  # [B, G, n_sh_rest, 3]
+                deltas[name] = v.reshape(*v.shape[:2], *dims)[:, :, :n_sh_rest] if n_sh_rest else None
+            else:
+                deltas[name] = v if len(dims) == 1 else v.reshape(*v.shape[:2], *dims)
+        return PoseDeltas(ctrl=None, **deltas)
 
 
 POSE_HEADS: dict[str, type[PoseHead]] = {"ours": AnchorMLPHead, "mmlps": MMLPsHead, "conv_uv": UVDecoderHead}
