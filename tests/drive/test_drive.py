@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import tyro
 from scipy.spatial.transform import Rotation
 
 from gsavatar.data_schema import SchemaError, load_capture
@@ -302,7 +303,10 @@ def test_drive_modes_come_from_one_table(loaded, tiny_run):
 
     modes = ("predictor", "pose_init", "predictor_encoder_init", "reinit", "train_mean", "encoder")
     assert tuple(LATENT_SOURCES) == modes and typing.get_args(DriveMode) == modes
-    assert typing.get_type_hints(DriveArgs)["mode"] == DriveMode  # the CLI's --mode choices
+    assert typing.get_type_hints(DriveArgs)["drive"] is DriveConfig  # the CLI holds the config, no copy
+    assert typing.get_type_hints(DriveConfig)["mode"] == DriveMode  # the CLI's --mode choices
+    args = tyro.cli(DriveArgs, args=["--run", "r", "--motion", "m", "--mode", "encoder", "--image-scale", "0.5"])
+    assert args.config() == DriveConfig(mode="encoder", image_scale=0.5)
     assert ramp_up_modes() == ("predictor", "pose_init", "predictor_encoder_init", "encoder")
     with pytest.raises(ValueError, match="mode must be one of predictor/pose_init/"):
         DriveConfig(mode="nope")

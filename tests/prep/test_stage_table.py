@@ -81,7 +81,7 @@ def test_projection_options_reach_the_atlas_it_reads(tmp_path):
     got = planned(["project-uv", "--project.tex-size", "64", "--project.gutter-px", "2"], tmp_path / "ds")
     assert got["uv-atlas"] == UvAtlasConfig(tex_size=64, gutter_px=2.0)
     got = planned(["all", "--project.gutter-px", "0.5"], tmp_path / "ds")
-    assert got["uv-atlas"] == UvAtlasConfig(tex_size=0, gutter_px=0.5)
+    assert got["uv-atlas"] == UvAtlasConfig(tex_size=None, gutter_px=0.5)  # None: derived from the capture
 
 
 def _arrays(ds: Path) -> dict[str, bytes]:

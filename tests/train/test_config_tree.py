@@ -182,3 +182,14 @@ def test_no_code_patches_a_module_level_recipe():
         assert "CPU_RECIPE =" not in text or path.name == "config.py", path
         assert ".CPU_RECIPE[" not in text, path
     assert set(VARIANTS) >= {"ours", "mmlps_dagger"}
+
+
+def test_a_refused_nested_value_exits_2_naming_it(capsys, tmp_path):
+    from gsavatar.train.cli import main
+
+    try:
+        rc = main(["avatar", *BASE[:2], "--out", str(tmp_path / "r"), "--model.init-opacity", "2"])
+    except SystemExit as e:  # tyro's parse errors exit through SystemExit
+        rc = e.code
+    assert rc == 2 and "init_opacity" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()  # refused before anything is written

@@ -26,9 +26,9 @@ import json
 import sys
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 import torch
@@ -44,7 +44,7 @@ from gsavatar.drive.viewer import serve_drive_args
 from gsavatar.runs.load import load_run, predictor_from_checkpoint
 from gsavatar.metrics.lpips import LPIPSMode, load_lpips
 from gsavatar.metrics.protocols import PROTOCOLS, load_ag_lpips
-from gsavatar.utils.cli import run_reporting_errors
+from gsavatar.utils.cli import parse_args, run_reporting_errors
 from gsavatar.utils.io import atomic_path, atomic_save_npz, atomic_write_json, write_image
 from gsavatar.utils.outdir import claim_output_dir
 from gsavatar.utils.paths import output_path
@@ -52,9 +52,11 @@ from gsavatar.utils.progress import progress_bar
 
 
 @dataclass(kw_only=True)
-class DriveArgs(DriveConfig):
+class DriveArgs:
     """Drive a trained avatar with a motion (npz, capture directory or BVH)."""
 
+    drive: Annotated[DriveConfig, tyro.conf.arg(name="")] = field(default_factory=DriveConfig)
+    """The drive's configuration: latent source (``--mode``), cameras, image scale, device (flags without a prefix)."""
     run: Path
     """Run directory of ``avatar-train avatar`` (its predictor in RUN/predictor when trained)."""
     motion: Path
@@ -107,7 +109,8 @@ class DriveArgs(DriveConfig):
     """--export-ply: up axis of the files (``z``: ours; ``-y``: COLMAP/3DGS viewers such as SuperSplat)."""
 
     def config(self) -> DriveConfig:
-        return DriveConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(DriveConfig)})
+        """The drive configuration these arguments hold."""
+        return self.drive
 
 
 def _json_safe(obj):
@@ -266,10 +269,10 @@ def drive(args: DriveArgs) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``avatar-drive``; returns the exit code (2: bad input, message on stderr)."""
-    try:  # tyro reports parse errors, including DriveConfig's field validation, and exits 2
-        args = tyro.cli(DriveArgs, args=argv, prog="avatar-drive", description=__doc__)
-    except SystemExit as e:
-        return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
+    # parse errors and DriveConfig's field validation: exit 2 naming the field
+    args = parse_args(lambda: tyro.cli(DriveArgs, args=argv, prog="avatar-drive", description=__doc__), exit_codes=True)
+    if isinstance(args, int):
+        return args
     if args.view:
         return run_reporting_errors(lambda: serve_drive_args(args))
     if args.export_ply is not None:

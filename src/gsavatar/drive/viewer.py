@@ -39,16 +39,18 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import torch
+import tyro
 
 from gsavatar.data_schema import SchemaError
 from gsavatar.drive.driver import DriveConfig, Driver, FrameInputs, motion_inputs, texture_source
 from gsavatar.drive.live import MEAN_LATENT, LiveGaussians
 from gsavatar.drive.motion import DrivingMotion, load_driving_motion
 from gsavatar.runs.load import load_run
-from gsavatar.utils.cli import run_reporting_errors
+from gsavatar.utils.cli import parse_args, run_reporting_errors
 
 
 @dataclass
@@ -676,9 +678,11 @@ def viewer_from_run(
 
 
 @dataclass(kw_only=True)
-class ViewArgs(ViewerOptions):
+class ViewArgs:
     """Open the browser viewer of a trained run (``avatar-train view``)."""
 
+    options: Annotated[ViewerOptions, tyro.conf.arg(name="")] = field(default_factory=ViewerOptions)
+    """Port, host and display options of the viewer (flags without a prefix)."""
     run: Path
     """Run directory of ``avatar-train avatar``."""
     motion: Path | None = None
@@ -691,13 +695,12 @@ class ViewArgs(ViewerOptions):
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m gsavatar.drive.viewer`` (``avatar-train view``); exit 2 on bad input."""
-    import tyro
-
-    try:
-        args = tyro.cli(ViewArgs, args=argv, prog="avatar-train view", description=__doc__)
-    except SystemExit as e:
-        return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
-    opts = ViewerOptions(**{k: getattr(args, k) for k in ViewerOptions.__dataclass_fields__})
+    args = parse_args(
+        lambda: tyro.cli(ViewArgs, args=argv, prog="avatar-train view", description=__doc__), exit_codes=True
+    )
+    if isinstance(args, int):
+        return args
+    opts = args.options
 
     def go() -> None:
         claim_address(opts.host, opts.port, warn=lambda m: None)  # fail in seconds, before loading the run

@@ -13,6 +13,7 @@ import dataclasses
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import tyro
 
@@ -20,29 +21,30 @@ from gsavatar.data_schema.dataset import verify_dataset
 from gsavatar.prep.common import StageArgs
 from gsavatar.prep.configs import LocalizeConfig, SamplePointsConfig
 from gsavatar.prep.project_uv import ProjectConfig
-from gsavatar.prep.table import STAGES, Stage, config_of, default_configs, run_stages
+from gsavatar.prep.table import STAGES, Stage, default_configs, run_stages
 from gsavatar.importers.cli import Import  # the capture sources' commands: the one prep -> importers import
 from gsavatar.synth.cli import Synth  # and the one prep -> synth import (docs/architecture.md)
 from gsavatar.fitting.cli import FitBody  # and prep -> fitting (body poses from 2D keypoints)
-from gsavatar.utils.cli import run_reporting_errors
+from gsavatar.utils.cli import parse_args, run_reporting_errors
 
 
 def stage_command(stage: Stage) -> type:
-    """The ``avatar-prep <stage>`` subcommand: the common :class:`StageArgs` flags, then the fields of the
-    stage's config as flags (their defaults are the config's); runs the stage after the upstream stages it
-    needs (:func:`gsavatar.prep.table.run_stages`)."""
+    """The ``avatar-prep <stage>`` subcommand: the common :class:`StageArgs` flags and the stage's config it
+    holds (``config``, its fields as flags without a prefix, their defaults the config's); runs the stage after
+    the upstream stages it needs (:func:`gsavatar.prep.table.run_stages`)."""
 
     def configs(self) -> dict[str, object]:
-        return {stage.name: config_of(self, stage.config)}
+        return {stage.name: self.config}
 
     def run(self) -> None:
         run_stages(self, self.configs())
 
     name = "".join(w.capitalize() for w in stage.name.split("-"))  # uv-atlas -> UvAtlas
+    config = (Annotated[stage.config, tyro.conf.arg(name="")], field(default_factory=stage.config))
     return dataclasses.make_dataclass(
         name,
-        [],
-        bases=(stage.config, StageArgs),
+        [("config", *config)],
+        bases=(StageArgs,),
         namespace={"configs": configs, "run": run, "__doc__": stage.config.__doc__, "__module__": __name__},
     )
 
@@ -102,7 +104,9 @@ def parse(argv: list[str] | None = None):
 
 
 def main(argv: list[str] | None = None) -> int:
-    cmd = parse(argv)
+    cmd = parse_args(lambda: parse(argv))  # a stage config that refuses a value: exit 2 naming it
+    if isinstance(cmd, int):
+        return cmd
     rc = run_reporting_errors(cmd.run)
     if rc:
         return rc

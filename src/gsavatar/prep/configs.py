@@ -24,8 +24,8 @@ class PoseTemplateConfig:
 class UvAtlasConfig:
     """Unwrap the template with xatlas if it has no UVs (cached), build the texel -> (triangle, barycentric) map."""
 
-    tex_size: int = ProjectConfig.tex_size
-    """UV texture resolution (0 = derived from the capture's image size; paper: 1024)."""
+    tex_size: int | None = ProjectConfig.tex_size
+    """UV texture resolution (None = derived from the capture's image size; paper: 1024)."""
     gutter_px: float = ProjectConfig.gutter_px
     """Texels within this distance outside a UV triangle still map to it (no holes at seams)."""
 
@@ -56,12 +56,12 @@ class FitPcaConfig:
 class SamplePointsConfig:
     """Anchors / control points / Gaussians on the template with 3-NN interpolation weights."""
 
-    anchors: int = 0
-    """Anchor count (0 = derived from the capture's image resolution, at most the paper's 300)."""
-    control: int = 0
-    """Control-point count (0 = derived, at most 10k)."""
-    gaussians: int = 0
-    """Gaussian count (0 = derived, at most 200k)."""
+    anchors: int | None = None
+    """Anchor count (None = derived from the capture's image resolution, at most the paper's 300)."""
+    control: int | None = None
+    """Control-point count (None = derived, at most 10k)."""
+    gaussians: int | None = None
+    """Gaussian count (None = derived, at most 200k)."""
     seed: int = 0
     """Sampling seed."""
 

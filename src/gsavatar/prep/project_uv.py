@@ -60,8 +60,8 @@ LUMA = (0.2126, 0.7152, 0.0722)
 class ProjectConfig:
     """Settings of the per-frame UV texel projection."""
 
-    tex_size: int = 0
-    """UV texture resolution (square); 0 = derived from the capture by ``avatar-prep`` (see
+    tex_size: int | None = None
+    """UV texture resolution (square); None = derived from the capture by ``avatar-prep`` (see
     ``stages.auto_tex_size``: 512 for 256^2 views, capped at the paper's 1024)."""
     erode_px: int = 5
     """Side of the square kernel eroding the foreground mask (``mask > mask_threshold``) before sampling; 0 = no
@@ -92,8 +92,8 @@ class ProjectConfig:
     occluding contours (tests/prep/test_project_uv_zbuffer.py)."""
 
     def __post_init__(self) -> None:
-        if not isinstance(self.tex_size, int) or self.tex_size < 0:
-            raise ValueError(f"tex_size must be a positive integer (or 0 = derived), got {self.tex_size!r}")
+        if self.tex_size is not None and (not isinstance(self.tex_size, int) or self.tex_size < 1):
+            raise ValueError(f"tex_size must be a positive integer (or None = derived), got {self.tex_size!r}")
         if self.erode_px < 0:
             raise ValueError(f"erode_px must be >= 0, got {self.erode_px}")
         lo, hi = self.band
@@ -803,9 +803,9 @@ def prepare_texel_map(
     """The template with UVs (xatlas unwrap if it has none, cached in ``cache_dir``) and its
     :class:`TexelMap` at ``config.tex_size`` with ``config.gutter_px`` seam dilation. Build once per run."""
     config = config or ProjectConfig(tex_size=512)
-    if not config.tex_size:
+    if config.tex_size is None:
         raise ValueError(
-            "config.tex_size is 0 (derived): resolve it first, e.g. with gsavatar.prep.stages.resolve_tex_size"
+            "config.tex_size is None (derived): resolve it first, e.g. with gsavatar.prep.stages.resolve_tex_size"
         )
     template = ensure_uvs(template, cache_dir)
     return template, build_texel_map(template, size=config.tex_size, gutter=config.gutter_px)

@@ -73,8 +73,8 @@ def auto_tex_size(cap: Capture) -> int:
 
 
 def resolve_tex_size(cfg: ProjectConfig, cap: Capture) -> ProjectConfig:
-    """``cfg`` with ``tex_size`` 0 replaced by :func:`auto_tex_size`."""
-    if cfg.tex_size:
+    """``cfg`` with ``tex_size`` None (derived) replaced by :func:`auto_tex_size`."""
+    if cfg.tex_size is not None:
         return cfg
     size = auto_tex_size(cap)
     print(f"[project-uv] texture size {size}x{size} (derived from the capture's images)")
@@ -86,13 +86,13 @@ def atlas_config(tex_size: int, gutter_px: float) -> dict:
 
 
 def atlas_for_projection(cfg: ProjectUvConfig) -> UvAtlasConfig:
-    """The atlas project-uv reads: its texture size (0 = derived the same way) and seam gutter."""
+    """The atlas project-uv reads: its texture size (None = derived the same way) and seam gutter."""
     return UvAtlasConfig(tex_size=cfg.project.tex_size, gutter_px=cfg.project.gutter_px)
 
 
 def uv_atlas(args: StageArgs, cap: Capture, cfg: UvAtlasConfig, inputs: dict[str, str]) -> bool:
     root = Path(args.out)
-    tex_size = cfg.tex_size or auto_tex_size(cap)
+    tex_size = auto_tex_size(cap) if cfg.tex_size is None else cfg.tex_size
 
     def produce() -> list[Path]:
         t = ensure_uvs(cap.template, cache_dir=root / "uv_atlas" / "xatlas_cache")
@@ -263,10 +263,13 @@ def sample_points(args: StageArgs, cap: Capture, cfg: SamplePointsConfig, inputs
     root = Path(args.out)
     given = {"anchors": cfg.anchors, "control": cfg.control, "gaussians": cfg.gaussians}
     auto = auto_point_counts(cap)
-    counts = {k: v or auto[k] for k, v in given.items()}
+    counts = {k: auto[k] if v is None else v for k, v in given.items()}
 
     def produce() -> list[Path]:
-        print("[sample-points] " + ", ".join(f"{k} {v}" + ("" if given[k] else " (auto)") for k, v in counts.items()))
+        print(
+            "[sample-points] "
+            + ", ".join(f"{k} {v}" + ("" if given[k] is not None else " (auto)") for k, v in counts.items())
+        )
         # A template without UVs gets uv-atlas' unwrap (the same cached xatlas call, a function of the template
         # alone): the points need UVs in the layout the textures are projected into.
         template = ensure_uvs(cap.template, cache_dir=root / "uv_atlas" / "xatlas_cache")

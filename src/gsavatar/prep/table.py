@@ -118,11 +118,6 @@ def default_configs() -> dict[str, Any]:
     return {s.name: s.config() for s in STAGES}
 
 
-def config_of(options: Any, cls: type) -> Any:
-    """The ``cls`` config held by ``options``, an object with (at least) its fields (a subcommand)."""
-    return cls(**{f.name: getattr(options, f.name) for f in dataclasses.fields(cls)})
-
-
 def stage_inputs(stage: Stage, dataset: Path, capture_root: Path) -> dict[str, str]:
     """Fingerprint of what ``stage`` reads: its capture files and the identity of its upstream stages."""
     return {

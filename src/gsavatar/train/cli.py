@@ -26,7 +26,7 @@ from gsavatar.runs.config import TrainConfig, model_config, preset_config
 from gsavatar.runs.load import load_run
 from gsavatar.train.predictor_cli import Predictor
 from gsavatar.train.runs import evaluate_run, posed_output, render_turntable, train_and_evaluate
-from gsavatar.utils.cli import run_reporting_errors
+from gsavatar.utils.cli import parse_args, run_reporting_errors
 from gsavatar.utils.outdir import claim_output_file, record_output_file
 from gsavatar.utils.paths import add_output_root
 
@@ -192,9 +192,15 @@ def main(argv: list[str] | None = None) -> int:
         "view": Viewer,
     }
     if args[:1] == ["avatar"]:  # parsed into the --preset's default instance (_preset_default)
-        cmd = tyro.cli(Avatar, default=_preset_default(args[1:]), args=args[1:], prog="avatar-train avatar")
+        cmd = parse_args(
+            lambda: tyro.cli(Avatar, default=_preset_default(args[1:]), args=args[1:], prog="avatar-train avatar")
+        )
     else:
-        cmd = tyro.extras.subcommand_cli_from_dict(commands, prog="avatar-train", description=__doc__, args=args)
+        cmd = parse_args(
+            lambda: tyro.extras.subcommand_cli_from_dict(commands, prog="avatar-train", description=__doc__, args=args)
+        )
+    if isinstance(cmd, int):  # a nested config refused a value (named on stderr)
+        return cmd
     try:
         return run_reporting_errors(cmd.execute)  # one method name: Eval, Predictor... have a `run` field
     finally:

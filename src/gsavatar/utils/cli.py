@@ -91,3 +91,19 @@ def run_reporting_errors(fn: Callable[[], object]) -> int:
         clear_output_roots()
         _RESUME_HINT.clear()
     return 0
+
+
+def parse_args(parse: Callable[[], object], exit_codes: bool = False) -> object | int:
+    """``parse()`` (a ``tyro.cli`` call), or 2 with ``error: ...`` on stderr when a nested config refuses a value
+    (its ``__post_init__``; tyro reports only the top-level class's checks itself), e.g.
+    ``--model.init-opacity 2``. ``exit_codes``: tyro's own exits (``--help``, parse errors) are returned as
+    codes too instead of raising SystemExit."""
+    try:
+        return parse()
+    except SystemExit as e:
+        if not exit_codes:
+            raise
+        return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
+    except (ValueError, TypeError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
