@@ -302,7 +302,13 @@ def _(env):
     return train_resume(env, lambda c, d, r: _truncate_train_images(c))
 
 
-@case("checkpoint from another config", "avatar-train", "latest.pt", "config.train.batch_size", "another configuration")
+@case(
+    "checkpoint from another config",
+    "avatar-train",
+    "latest.pt",
+    "config.train.schedule.batch_size",
+    "another configuration",
+)
 def _(env):
     return train_resume(env, lambda c, d, r: None, "--batch-size", "4")
 
@@ -312,7 +318,7 @@ def _(env):
     return train_resume(env, lambda c, d, r: truncate(r / "checkpoints/latest.pt", 4096))
 
 
-@case("negative steps", "avatar-train", "steps", ">= 0", "-3")
+@case("negative steps", "avatar-train", "schedule.steps", ">= 1", "-3")
 def _(env):
     return train_fresh(env, lambda d: None, "--steps=-3")
 
