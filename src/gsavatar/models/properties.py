@@ -94,10 +94,6 @@ def _quat(x: Tensor, cfg: ModelConfig) -> Tensor:
     return gm.activate_quat(x)
 
 
-def _sigmoid(x: Tensor, cfg: ModelConfig) -> Tensor:
-    return torch.sigmoid(x)
-
-
 def _sh0(x: Tensor, cfg: ModelConfig) -> Tensor:
     return gm.activate_sh0(x)
 
@@ -108,7 +104,7 @@ def _shn(x: Tensor, cfg: ModelConfig) -> Tensor:
 
 def activate_sigmoid(x: Tensor, cfg: ModelConfig) -> Tensor:
     """``sigmoid(x)``: a property in (0, 1) (opacity; the example in the module docstring)."""
-    return _sigmoid(x, cfg)
+    return torch.sigmoid(x)
 
 
 def _opacity_init(ctx: InitContext) -> np.ndarray:
@@ -136,7 +132,15 @@ GAUSSIAN_PROPERTIES: tuple[GaussianProperty, ...] = (
     ),
     # sigmoid, bias only (no opacity correctives)
     GaussianProperty(
-        "opacity", (1,), _sigmoid, "opacity_bias", None, "opacity_bias", None, init=_opacity_init, bias_squeeze=True
+        "opacity",
+        (1,),
+        activate_sigmoid,
+        "opacity_bias",
+        None,
+        "opacity_bias",
+        None,
+        init=_opacity_init,
+        bias_squeeze=True,
     ),
     # tanh(x) * 0.5 / C0: colour = SH0 * C0 + 0.5
     GaussianProperty("sh0", (3,), _sh0, "sh0_bias", "sh0_basis", "sh0_bias", "sh0_basis", anchor_terms=True),
