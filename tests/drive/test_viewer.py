@@ -275,8 +275,9 @@ def test_viewer_in_headless_chromium(driver, motion, tmp_path):
         f0, n0, a = v.frame, v.frames_generated, b.screenshot()
         seen, diff_play, t0 = {f0}, 0.0, time.time()
         while time.time() - t0 < 90:  # new frames reach the page (slower while a fresh process compiles kernels)
-            time.sleep(1.5)
-            seen.add(v.frame)
+            for _ in range(30):  # sample the frame on screen often: a looping short motion can be back at f0
+                time.sleep(0.05)
+                seen.add(v.frame)
             c = b.screenshot()
             diff_play = np.abs(a.astype(int) - c.astype(int))[180:, : W - PANEL].mean()
             if diff_play > 0.05:
