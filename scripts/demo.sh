@@ -25,8 +25,9 @@ train() {  # train NAME [avatar-train flags...]: one run, resumed if it exists
     .venv/bin/avatar-train avatar --dataset "$OUT/dataset" --out "$OUT/$name" --preset "$PRESET" "$@"
 }
 # CPU recipe of the predictor (docs/train.md "The appearance predictor on history-caused appearance"): one global
-# latent PCA of 8 components as the output clamp; zero context = the training-mean latent (the default)
-PRED_FLAGS="--steps 200 --window 8 --model.latent-pca global --model.latent-pca-components 8"
+# latent PCA of 8 components as the output clamp; zero context = the training-mean latent (the default); an ensemble
+# of 4 predictors from 4 seeds, averaged every step (the seed-to-seed spread of one predictor is larger than its gain)
+PRED_FLAGS="--steps 200 --window 8 --model.latent-pca global --model.latent-pca-components 8 --ensemble 4"
 seed_runs() {  # run-to-run spread of Ours: the same recipe with the seeds in $SEEDS (default 1 2)
     for s in ${SEEDS-1 2}; do
         train "run_ours_seed$s" --seed "$s"

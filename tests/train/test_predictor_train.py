@@ -10,9 +10,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from gsavatar.models.predictor import AppearancePredictor, PredictorConfig
+from gsavatar.models.predictor import AppearancePredictor, PredictorConfig, PredictorEnsemble
 from gsavatar.runs.load import predictor_from_checkpoint
 from gsavatar.train.predictor import (
+    MEMBER_SEED_STRIDE,
     PredictorTrainConfig,
     PredictorTrainer,
     SequenceData,
@@ -195,3 +196,85 @@ def test_predictor_cli_on_a_tiny_avatar_run(tiny_dataset, tmp_path):
     assert m.num_anchors == lat.shape[1] and bool(m.initial_ready)
     # already done: resumes at 3, re-evaluates
     Predictor(run=run, steps=3, batch_size=2, window=4, device="cpu").execute()
+
+
+def _member(seed: int, data: SequenceData) -> AppearancePredictor:
+    m = model(seed)
+    prepare_model(m, data, [(0, 60)])
+    return m
+
+
+def test_ensemble_averages_members_and_streams_like_one_predictor():
+    """Forward = mean of the members'; a rollout feeds that mean back (checked against a naive loop); an
+    ensemble of identical copies is the single predictor."""
+    torch.set_num_threads(1)
+    data = synthetic(60)
+    a, b = _member(0, data), _member(1, data)
+    with torch.no_grad():  # move the residual heads off zero so members differ
+        for m, s in ((a, 0.05), (b, -0.08)):
+            for p in m.parameters():
+                p.add_(s * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
+    ens = PredictorEnsemble([a, b]).eval()
+    a.eval(), b.eval()
+    x = (data.pose[:N][None], data.root_rotation[:N][None], data.root_translation[:N][None], data.latents[:1])
+    torch.testing.assert_close(ens(*x), (a(*x) + b(*x)) / 2)
+    P_, R_, T_ = data.pose[:20], data.root_rotation[:20], data.root_translation[:20]
+    roll = ens.rollout(P_, R_, T_, ens.zero_latents())
+    prev, naive = a.zero_latents(), []  # naive: the shared window, both members, their mean fed back
+    for t in range(20):
+        idx = torch.clamp(torch.arange(t - N + 1, t + 1), min=0)
+        w = (P_[idx][None], R_[idx][None], T_[idx][None], prev[None])
+        prev = ((a(*w) + b(*w)) / 2)[0]
+        naive.append(prev)
+    torch.testing.assert_close(roll, torch.stack(naive), atol=1e-5, rtol=0)
+    assert (roll - a.rollout(P_, R_, T_, a.zero_latents())).abs().max() > 1e-3  # not member a alone
+    same = PredictorEnsemble([a, a]).eval()
+    torch.testing.assert_close(same.rollout(P_, R_, T_, a.zero_latents()), a.rollout(P_, R_, T_, a.zero_latents()))
+    with pytest.raises(ValueError, match="members"):
+        PredictorEnsemble([])
+    other = AppearancePredictor(dataclasses.replace(SMALL, width=16), A, list(range(P)), P)
+    with pytest.raises(ValueError, match=r"members\[1\]"):
+        PredictorEnsemble([a, other])
+
+
+def test_ensemble_trains_members_on_their_own_windows_and_rebuilds_from_its_checkpoint(tmp_path):
+    torch.set_num_threads(1)
+    data = synthetic(60)
+    one = _run(tmp_path / "one", data, steps=4)
+    members = [_member(MEMBER_SEED_STRIDE * k, data) for k in range(2)]
+    ens = PredictorEnsemble(members)
+    PredictorTrainer(ens, data, [(0, 60)], train_cfg(steps=4, ensemble=2), tmp_path / "ens").train()
+    # member 0 is the single predictor of the same seed, trained on the same windows: identical weights
+    s1, s0 = one.state_dict(), members[0].state_dict()
+    assert all(torch.equal(s1[k], s0[k]) for k in s1)
+    assert any(not torch.equal(s0[k], members[1].state_dict()[k]) for k in s0)
+    c = predictor_from_checkpoint(tmp_path / "ens" / "latest.pt")
+    assert isinstance(c, PredictorEnsemble) and len(c.members) == 2
+    x = (data.pose[:N][None], data.root_rotation[:N][None], data.root_translation[:N][None], data.latents[:1])
+    assert torch.equal(c(*x), ens.eval()(*x))
+    with pytest.raises(Exception, match="ensemble"):  # resuming with another K is refused
+        PredictorTrainer(model(), data, [(0, 60)], train_cfg(steps=6, ensemble=1), tmp_path / "ens")
+    with pytest.raises(ValueError, match="ensemble = 3"):
+        PredictorTrainer(ens, data, [(0, 60)], train_cfg(steps=4, ensemble=3), tmp_path / "x")
+
+
+def test_context_noise_perturbs_only_the_fed_back_inputs():
+    data = synthetic(40)
+    m = model()
+    prepare_model(m, data, [(0, 40)])
+    with torch.no_grad():
+        for p in m.parameters():
+            p.add_(0.05 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
+    rows, seg = WindowSampler([(0, 40)], 5).sample(3, torch.Generator().manual_seed(1))
+    ctx = data.latents[rows[:, 0] - 1]
+    clean = unroll(m, data, rows, seg, ctx)
+    assert torch.equal(unroll(m, data, rows, seg, ctx, context_noise=0.0), clean)
+    g = lambda: torch.Generator().manual_seed(5)  # noqa: E731
+    n1, n2 = (unroll(m, data, rows, seg, ctx, context_noise=0.5, gen=g()) for _ in range(2))
+    assert torch.equal(n1, n2) and (n1 - clean).abs().max() > 1e-4  # seeded, and it does change the inputs
+    # the first step's input is ctx + 0.5 * scale * eps: the same as an explicit noisy context
+    eps = torch.randn(ctx.shape, generator=g())
+    first = unroll(m, data, rows[:, :1], seg, ctx + 0.5 * m.latent_scale * eps)
+    torch.testing.assert_close(n1[:, :1], first)
+    with pytest.raises(ValueError, match="context_noise"):
+        PredictorTrainer(m, data, [(0, 40)], train_cfg(context_noise=-1.0), Path("/nonexistent/never-written"))

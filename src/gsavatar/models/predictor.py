@@ -288,7 +288,84 @@ class InitialLatentNet(nn.Module):
         return self.net(x).reshape(x.shape[0], self.num_anchors, self.latent_dim)
 
 
-class AppearancePredictor(nn.Module):
+class _Streaming:
+    """Streaming and rollout of a one-frame latent predictor: ``self(pose_window, root_rot_window,
+    root_trans_window, prev_latents)`` with ``config``, ``pose_dim``, ``num_anchors`` and ``initial_latents``."""
+
+    @torch.no_grad()
+    def init_state(
+        self, first_pose: Tensor, first_root_rot: Tensor, first_root_trans: Tensor, init_latents: Tensor | None = None
+    ) -> RolloutState:
+        """History = the first frame repeated N_b times; previous latents = ``init_latents`` [A, L]
+        or, when None, :meth:`initial_latents` (the trained InitialLatentNet, else zeros)."""
+        N = self.config.history
+        _check("first_pose", first_pose, (self.pose_dim,))
+        _check("first_root_rot", first_root_rot, (3,))
+        _check("first_root_trans", first_root_trans, (3,))
+        if init_latents is None:
+            init_latents = self.initial_latents(first_pose[None])[0]
+        _check("init_latents", init_latents, (self.num_anchors, self.config.latent_dim))
+        rep = lambda x: x[None].expand(N, -1).clone()  # noqa: E731
+        return RolloutState(rep(first_pose), rep(first_root_rot), rep(first_root_trans), init_latents.clone())
+
+    @torch.no_grad()
+    def step(
+        self, state: RolloutState, pose: Tensor, root_rot: Tensor, root_trans: Tensor
+    ) -> tuple[Tensor, RolloutState]:
+        """Push frame t (pose [P], root_rot [3], root_trans [3]) and predict its latents.
+
+        -> (latents [A, L], new state). Uses the module's current mode (call ``.eval()`` with dropout).
+        """
+        _check("pose", pose, (self.pose_dim,))
+        _check("root_rot", root_rot, (3,))
+        _check("root_trans", root_trans, (3,))
+        push = lambda h, x: torch.cat([h[1:], x[None].to(h)], 0)  # noqa: E731
+        p, r, t = push(state.pose, pose), push(state.root_rotation, root_rot), push(state.root_translation, root_trans)
+        lat = self(p[None], r[None], t[None], state.latents[None])[0]
+        return lat, RolloutState(p, r, t, lat)
+
+    @torch.no_grad()
+    def rollout(
+        self,
+        poses: Tensor,
+        root_rot: Tensor,
+        root_trans: Tensor,
+        init_latents: Tensor | None = None,
+        reinit_every: int = 0,
+        reinit_latents: Callable[[int], Tensor] | None = None,
+        first_is_given: bool = False,
+    ) -> Tensor:
+        """Free-running prediction over a sequence, one :meth:`step` per frame.
+
+        poses [T, P], root_rot [T, 3], root_trans [T, 3]; ``init_latents`` [A, L]: the
+        "previous" latents of frame 0 (None: :meth:`initial_latents` of frame 0). With
+        ``first_is_given`` they are frame 0's own latents (teacher-forced first frame):
+        output 0 is ``init_latents`` and prediction starts at frame 1. ``reinit_every`` > 0:
+        at every frame t > 0 with ``t % reinit_every == 0`` the previous latents are replaced
+        by ``reinit_latents(t)`` [A, L] (None: :meth:`initial_latents` of frame t).
+        -> [T, A, L]
+        """
+        T = poses.shape[0] if poses.ndim == 2 else -1
+        _check("poses", poses, (None, self.pose_dim))
+        _check("root_rot", root_rot, (T, 3))
+        _check("root_trans", root_trans, (T, 3))
+        if T < 1:
+            raise ValueError("poses must hold at least one frame, got 0")
+        if first_is_given and init_latents is None:
+            raise ValueError("first_is_given=True needs init_latents (frame 0's latents), got None")
+        state = self.init_state(poses[0], root_rot[0], root_trans[0], init_latents)
+        out = [state.latents] if first_is_given else []
+        for t in range(1 if first_is_given else 0, T):
+            if reinit_every > 0 and t > 0 and t % reinit_every == 0:
+                new = reinit_latents(t) if reinit_latents is not None else self.initial_latents(poses[t : t + 1])[0]
+                _check("reinit_latents(t)", new, (self.num_anchors, self.config.latent_dim))
+                state = state._replace(latents=new.to(state.latents))
+            lat, state = self.step(state, poses[t], root_rot[t], root_trans[t])
+            out.append(lat)
+        return torch.stack(out)
+
+
+class AppearancePredictor(_Streaming, nn.Module):
     """Transformer over pose-slot and anchor tokens -> per-anchor latents (module docstring).
 
     Args:
@@ -563,75 +640,71 @@ class AppearancePredictor(nn.Module):
             return pose.new_zeros(pose.shape[0], self.num_anchors, self.config.latent_dim)
         return self.clamp_latents(self.latent_mean + self.latent_scale * self.initial(self.initial_features(pose)))
 
-    # ------------------------------------------------------------------ streaming
-    @torch.no_grad()
-    def init_state(
-        self, first_pose: Tensor, first_root_rot: Tensor, first_root_trans: Tensor, init_latents: Tensor | None = None
-    ) -> RolloutState:
-        """History = the first frame repeated N_b times; previous latents = ``init_latents`` [A, L]
-        or, when None, :meth:`initial_latents` (the trained InitialLatentNet, else zeros)."""
-        N = self.config.history
-        _check("first_pose", first_pose, (self.pose_dim,))
-        _check("first_root_rot", first_root_rot, (3,))
-        _check("first_root_trans", first_root_trans, (3,))
-        if init_latents is None:
-            init_latents = self.initial_latents(first_pose[None])[0]
-        _check("init_latents", init_latents, (self.num_anchors, self.config.latent_dim))
-        rep = lambda x: x[None].expand(N, -1).clone()  # noqa: E731
-        return RolloutState(rep(first_pose), rep(first_root_rot), rep(first_root_trans), init_latents.clone())
 
-    @torch.no_grad()
-    def step(
-        self, state: RolloutState, pose: Tensor, root_rot: Tensor, root_trans: Tensor
-    ) -> tuple[Tensor, RolloutState]:
-        """Push frame t (pose [P], root_rot [3], root_trans [3]) and predict its latents.
+class PredictorEnsemble(_Streaming, nn.Module):
+    """K appearance predictors of one configuration, trained from different seeds, averaged at every step.
 
-        -> (latents [A, L], new state). Uses the module's current mode (call ``.eval()`` with dropout).
-        """
-        _check("pose", pose, (self.pose_dim,))
-        _check("root_rot", root_rot, (3,))
-        _check("root_trans", root_trans, (3,))
-        push = lambda h, x: torch.cat([h[1:], x[None].to(h)], 0)  # noqa: E731
-        p, r, t = push(state.pose, pose), push(state.root_rotation, root_rot), push(state.root_translation, root_trans)
-        lat = self(p[None], r[None], t[None], state.latents[None])[0]
-        return lat, RolloutState(p, r, t, lat)
+    One frame's latents are the mean of the members' (clamped) predictions from the same pose window and the
+    same previous latents, and that mean is what is fed back: the ensemble streams and rolls out exactly like
+    one :class:`AppearancePredictor`. Averaging removes the seed-to-seed part of the members' errors (the
+    members agree where the motion determines the appearance and scatter where a single predictor memorised
+    its training sequence); measured in docs/train.md. The mean of clamped latents stays inside the clamp box
+    (it is convex). The latent statistics, zero latents and mean latent are the first member's (every member is
+    fit on the same training targets, so they are equal).
 
-    @torch.no_grad()
-    def rollout(
-        self,
-        poses: Tensor,
-        root_rot: Tensor,
-        root_trans: Tensor,
-        init_latents: Tensor | None = None,
-        reinit_every: int = 0,
-        reinit_latents: Callable[[int], Tensor] | None = None,
-        first_is_given: bool = False,
+    Args:
+        members: the trained predictors (same config, anchors, slots and pose dimension).
+    """
+
+    def __init__(self, members: Sequence[AppearancePredictor]) -> None:
+        super().__init__()
+        members = list(members)
+        if not members:
+            raise ValueError("members: an ensemble needs at least one predictor")
+        m0 = members[0]
+        for i, m in enumerate(members[1:], 1):
+            if (m.config, m.num_anchors, m.pose_dim) != (m0.config, m0.num_anchors, m0.pose_dim):
+                raise ValueError(
+                    f"members[{i}]: config/anchors/pose_dim differ from members[0]'s "
+                    f"({m.num_anchors}, {m.pose_dim} vs {m0.num_anchors}, {m0.pose_dim})"
+                )
+        self.members = nn.ModuleList(members)
+        self.config, self.num_anchors, self.pose_dim = m0.config, m0.num_anchors, m0.pose_dim
+
+    @property
+    def latent_mean(self) -> Tensor:
+        return self.members[0].latent_mean
+
+    @property
+    def latent_scale(self) -> Tensor:
+        return self.members[0].latent_scale
+
+    @property
+    def latent_pca_ready(self) -> Tensor:
+        return self.members[0].latent_pca_ready
+
+    @property
+    def initial(self) -> InitialLatentNet | None:
+        """The first member's InitialLatentNet (None: the members have none)."""
+        return self.members[0].initial
+
+    @property
+    def initial_ready(self) -> Tensor:
+        return torch.stack([m.initial_ready for m in self.members]).all()
+
+    def zero_latents(self) -> Tensor:
+        return self.members[0].zero_latents()
+
+    def clamp_latents(self, latents: Tensor) -> Tensor:
+        return self.members[0].clamp_latents(latents)
+
+    def initial_latents(self, pose: Tensor, trained_only: bool = True) -> Tensor:
+        """Mean of the members' :meth:`AppearancePredictor.initial_latents`.  [B, P] -> [B, A, L]"""
+        return torch.stack([m.initial_latents(pose, trained_only) for m in self.members]).mean(0)
+
+    def forward(
+        self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor, prev_latents: Tensor
     ) -> Tensor:
-        """Free-running prediction over a sequence, one :meth:`step` per frame.
-
-        poses [T, P], root_rot [T, 3], root_trans [T, 3]; ``init_latents`` [A, L]: the
-        "previous" latents of frame 0 (None: :meth:`initial_latents` of frame 0). With
-        ``first_is_given`` they are frame 0's own latents (teacher-forced first frame):
-        output 0 is ``init_latents`` and prediction starts at frame 1. ``reinit_every`` > 0:
-        at every frame t > 0 with ``t % reinit_every == 0`` the previous latents are replaced
-        by ``reinit_latents(t)`` [A, L] (None: :meth:`initial_latents` of frame t).
-        -> [T, A, L]
-        """
-        T = poses.shape[0] if poses.ndim == 2 else -1
-        _check("poses", poses, (None, self.pose_dim))
-        _check("root_rot", root_rot, (T, 3))
-        _check("root_trans", root_trans, (T, 3))
-        if T < 1:
-            raise ValueError("poses must hold at least one frame, got 0")
-        if first_is_given and init_latents is None:
-            raise ValueError("first_is_given=True needs init_latents (frame 0's latents), got None")
-        state = self.init_state(poses[0], root_rot[0], root_trans[0], init_latents)
-        out = [state.latents] if first_is_given else []
-        for t in range(1 if first_is_given else 0, T):
-            if reinit_every > 0 and t > 0 and t % reinit_every == 0:
-                new = reinit_latents(t) if reinit_latents is not None else self.initial_latents(poses[t : t + 1])[0]
-                _check("reinit_latents(t)", new, (self.num_anchors, self.config.latent_dim))
-                state = state._replace(latents=new.to(state.latents))
-            lat, state = self.step(state, poses[t], root_rot[t], root_trans[t])
-            out.append(lat)
-        return torch.stack(out)
+        """Mean of the members' :meth:`AppearancePredictor.forward` (same arguments).  -> [B, A, L]"""
+        outs = [m(pose_window, root_rot_window, root_trans_window, prev_latents) for m in self.members]
+        return torch.stack(outs).mean(0)

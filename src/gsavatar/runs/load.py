@@ -16,7 +16,13 @@ from gsavatar.data_schema.dataset import dataset_fingerprint
 from gsavatar.data_schema.prepared import PreparedScene, load_scene
 from gsavatar.models.config import ModelConfig
 from gsavatar.models.net import AvatarNet, build_net
-from gsavatar.models.predictor import KINEMATICS_KEYS, LEGACY_CONFIG, AppearancePredictor, PredictorConfig
+from gsavatar.models.predictor import (
+    KINEMATICS_KEYS,
+    LEGACY_CONFIG,
+    AppearancePredictor,
+    PredictorConfig,
+    PredictorEnsemble,
+)
 from gsavatar.runs.checkpoint import check_same_dataset, load_checkpoint
 from gsavatar.runs.config import TrainConfig, check_train_config, from_json, resolve, upgrade_run_json
 from gsavatar.utils.errors import SchemaError
@@ -84,15 +90,33 @@ def run_predictor_path(run: str | Path) -> Path:
     return Path(run) / "predictor" / "latest.pt"
 
 
-def predictor_from_checkpoint(path: Path, device: str | torch.device = "cpu") -> AppearancePredictor:
-    """Rebuild a trained predictor from its checkpoint alone (slots and pose PCA are buffers)."""
+def predictor_from_checkpoint(
+    path: Path, device: str | torch.device = "cpu"
+) -> AppearancePredictor | PredictorEnsemble:
+    """Rebuild a trained predictor (or ensemble, config ``ensemble`` = K) from its checkpoint alone (slots and
+    pose PCA are buffers)."""
     state = load_checkpoint(path)
     sd = state["modules"]["predictor"]
     cfg = PredictorConfig(**{**LEGACY_CONFIG, **state["config"]["model"]})  # fields older checkpoints lack
-    pca = (sd["pose_pca_mean"], sd["pose_pca_basis"], sd["pose_pca_limit"]) if "pose_pca_basis" in sd else None
-    kin = tuple(sd[k] for k in KINEMATICS_KEYS) if KINEMATICS_KEYS[0] in sd else None
-    m = AppearancePredictor(
-        cfg, sd["latent_mean"].shape[0], sd["pose_slots"], int(state["config"]["pose_dim"]), pca, kinematics=kin
-    )
+    K = int(state["config"].get("ensemble", 1))
+    prefixes = [f"members.{k}." for k in range(K)] if K > 1 else [""]
+    members = []
+    for pre in prefixes:
+        msd = {k[len(pre) :]: v for k, v in sd.items() if k.startswith(pre)}
+        if not msd:
+            raise SchemaError(path, "modules.predictor", f"ensemble of {K}: no weights under {pre!r}")
+        pca = (msd["pose_pca_mean"], msd["pose_pca_basis"], msd["pose_pca_limit"]) if "pose_pca_basis" in msd else None
+        kin = tuple(msd[k] for k in KINEMATICS_KEYS) if KINEMATICS_KEYS[0] in msd else None
+        members.append(
+            AppearancePredictor(
+                cfg,
+                msd["latent_mean"].shape[0],
+                msd["pose_slots"],
+                int(state["config"]["pose_dim"]),
+                pca,
+                kinematics=kin,
+            )
+        )
+    m = members[0] if K == 1 else PredictorEnsemble(members)
     m.load_state_dict(sd)
     return m.to(device).eval()

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,7 +33,7 @@ from torch import Tensor
 
 from gsavatar.data_schema.prepared import ProjectedTextures
 from gsavatar.geometry.lbs import KinematicChain
-from gsavatar.models.predictor import LEGACY_CONFIG, AppearancePredictor, PredictorConfig
+from gsavatar.models.predictor import LEGACY_CONFIG, AppearancePredictor, PredictorConfig, PredictorEnsemble
 from gsavatar.runs.checkpoint import load_checkpoint, resume_hint, save_checkpoint
 from gsavatar.runs.load import LoadedRun, load_run
 from gsavatar.train.sampler import step_generator
@@ -44,6 +45,11 @@ from gsavatar.utils.outdir import claim_output_dir
 from gsavatar.utils.provenance import code_version
 
 TARGETS_FORMAT = "gsavatar-predictor-targets"
+
+
+MEMBER_SEED_STRIDE = 1000
+"""Member k of an ensemble trains from seed ``seed + MEMBER_SEED_STRIDE * k`` (k = 0: the predictor's own seed, so
+a one-member ensemble is the single predictor; seeds 0, 1, 2 of a study share no member)."""
 
 
 @dataclass
@@ -64,8 +70,17 @@ class PredictorTrainConfig:
     """Weight of the InitialLatentNet L1 loss (its parameters are disjoint from the predictor's)."""
     detach_feedback: bool = False
     """Stop gradients through the fed-back predictions (default: backprop through the unroll)."""
+    context_noise: float = 0.0
+    """Std of Gaussian noise added, while training only, to every previous-latents input of the unroll (the
+    given context and each fed-back prediction), in units of the per-(anchor, dim) latent scale; 0 = none (the
+    paper's). Trains the predictor to correct its own drift instead of trusting the latents fed back; measured in
+    docs/train.md."""
     seed: int = 0
     """Seed of initialisation and window sampling."""
+    ensemble: int = 1
+    """K: predictors trained side by side, member k from seed ``seed + 1000 k`` (its own initialisation and
+    windows), averaged at every driving step (:class:`~gsavatar.models.predictor.PredictorEnsemble`); 1 = one
+    predictor (the paper's). K times the training and predictor time; measured in docs/train.md."""
     checkpoint_every: int = 250
     """Steps between checkpoints (and at the end)."""
     log_every: int = 50
@@ -215,17 +230,25 @@ def unroll(
     seg_start: Tensor,
     ctx0: Tensor,
     detach_feedback: bool = False,
+    context_noise: float = 0.0,
+    gen: torch.Generator | None = None,
 ) -> Tensor:
     """Autoregressive unroll over windows, feeding back the predictions.
 
-    rows [B, T], seg_start [B], ctx0 [B, A, L] (previous latents of the first frame) -> [B, T, A, L]
+    rows [B, T], seg_start [B], ctx0 [B, A, L] (previous latents of the first frame) -> [B, T, A, L].
+    ``context_noise`` > 0: every previous-latents input gets ``context_noise * latent_scale * N(0, 1)``
+    (drawn from ``gen``); the outputs themselves are not perturbed.
     """
     dev = data.pose.device
     hist = history_index(rows.to(dev), seg_start.to(dev)[:, None], model.config.history)  # [B, T, N_b]
     pose, rr, rt = data.pose[hist], data.root_rotation[hist], data.root_translation[hist]
     prev, out = ctx0, []
     for k in range(rows.shape[1]):
-        prev = model(pose[:, k], rr[:, k], rt[:, k], prev.detach() if detach_feedback and k else prev)
+        ctx = prev.detach() if detach_feedback and k else prev
+        if context_noise > 0:
+            eps = torch.randn(ctx.shape, generator=gen, device=gen.device if gen is not None else None)
+            ctx = ctx + context_noise * model.latent_scale * eps.to(ctx)
+        prev = model(pose[:, k], rr[:, k], rt[:, k], ctx)
         out.append(prev)
     return torch.stack(out, 1)
 
@@ -245,16 +268,30 @@ def temporal_l1_terms(pred: Tensor, target: Tensor) -> dict[str, Tensor]:
 
 
 def dual_context_loss(
-    model: AppearancePredictor, data: SequenceData, rows: Tensor, seg_start: Tensor, detach_feedback: bool = False
+    model: AppearancePredictor,
+    data: SequenceData,
+    rows: Tensor,
+    seg_start: Tensor,
+    detach_feedback: bool = False,
+    context_noise: float = 0.0,
+    gen: torch.Generator | None = None,
 ) -> DualLoss:
-    """Unrolled losses of the GT-context and zero-context passes (one doubled batch), summed."""
+    """Unrolled losses of the GT-context and zero-context passes (one doubled batch), summed
+    (``context_noise``, ``gen``: see :func:`unroll`)."""
     B = rows.shape[0]
     dev = data.latents.device
     rows = rows.to(dev)
     gt_prev = data.latents[rows[:, 0] - 1]  # [B, A, L]
     zero = model.zero_latents().to(gt_prev).expand_as(gt_prev)
     pred = unroll(
-        model, data, rows.repeat(2, 1), seg_start.repeat(2), torch.cat([gt_prev, zero]), detach_feedback
+        model,
+        data,
+        rows.repeat(2, 1),
+        seg_start.repeat(2),
+        torch.cat([gt_prev, zero]),
+        detach_feedback,
+        context_noise,
+        gen,
     )  # [2B, T, A, L]
     target = data.latents[rows]  # [B, T, A, L]
     tg, tz = temporal_l1_terms(pred[:B], target), temporal_l1_terms(pred[B:], target)
@@ -376,6 +413,11 @@ class PredictorTrainer:
         out: Path,
         extra_config: dict | None = None,
     ) -> None:
+        if not (cfg.context_noise >= 0 and math.isfinite(cfg.context_noise)):
+            raise ValueError(f"context_noise must be a finite number >= 0, got {cfg.context_noise}")
+        self.members = list(model.members) if isinstance(model, PredictorEnsemble) else [model]
+        if len(self.members) != cfg.ensemble:
+            raise ValueError(f"ensemble = {cfg.ensemble} but the model has {len(self.members)} member(s)")
         self.model, self.data, self.cfg, self.out = model, data, cfg, Path(out)
         self.sampler = WindowSampler(train_segments, cfg.window)
         self.train_rows = torch.cat([torch.arange(s, e) for s, e in train_segments])
@@ -386,6 +428,7 @@ class PredictorTrainer:
             "model": model.config.to_json(),
             "pose_dim": model.pose_dim,
             "num_anchors": model.num_anchors,
+            **({"ensemble": cfg.ensemble} if cfg.ensemble > 1 else {}),  # absent = one predictor (older checkpoints)
             **(extra_config or {}),
         }
         self.ckpt = self.out / "latest.pt"
@@ -396,6 +439,7 @@ class PredictorTrainer:
                 self.config,
                 strict_config_keys=(
                     "model",
+                    "ensemble",
                     "num_anchors",
                     "pose_dim",
                     "targets_step",
@@ -416,17 +460,25 @@ class PredictorTrainer:
         set_resume_hint(resume_hint(self.ckpt, self.step))
 
     def loss(self, step: int) -> tuple[Tensor, dict[str, float]]:
-        g = step_generator(self.cfg.seed, step)
-        rows, seg = self.sampler.sample(self.cfg.batch_size, g)
-        d = dual_context_loss(self.model, self.data, rows, seg, self.cfg.detach_feedback)
-        total, logs = d.total, {**d.logs, "gt": float(d.gt.detach()), "zero": float(d.zero.detach())}
-        if self.model.initial is not None and self.cfg.initial_weight > 0:
-            irows = self.train_rows[
-                torch.randint(len(self.train_rows), (self.cfg.batch_size * self.sampler.T,), generator=g)
-            ]
-            il = initial_loss(self.model, self.data, irows)
-            total = total + self.cfg.initial_weight * il
-            logs["initial_l1"] = float(il.detach())
+        """Summed dual-context (+ InitialLatentNet) losses of every member, each on its own windows; logs are the
+        members' means."""
+        cfg, K = self.cfg, len(self.members)
+        total, logs = None, {}
+        for k, m in enumerate(self.members):
+            g = step_generator(cfg.seed + MEMBER_SEED_STRIDE * k, step)
+            rows, seg = self.sampler.sample(cfg.batch_size, g)
+            d = dual_context_loss(m, self.data, rows, seg, cfg.detach_feedback, cfg.context_noise, g)
+            part, mlogs = d.total, {**d.logs, "gt": float(d.gt.detach()), "zero": float(d.zero.detach())}
+            if m.initial is not None and cfg.initial_weight > 0:
+                irows = self.train_rows[
+                    torch.randint(len(self.train_rows), (cfg.batch_size * self.sampler.T,), generator=g)
+                ]
+                il = initial_loss(m, self.data, irows)
+                part = part + cfg.initial_weight * il
+                mlogs["initial_l1"] = float(il.detach())
+            total = part if total is None else total + part
+            for key, v in mlogs.items():
+                logs[key] = logs.get(key, 0.0) + v / K
         logs["total"] = float(total.detach())
         return total, logs
 
@@ -443,8 +495,9 @@ class PredictorTrainer:
             loss.backward()
             self.optim.step()
             self.step += 1
-            if self.model.initial is not None and cfg.initial_weight > 0:
-                self.model.initial_ready.fill_(True)
+            for m in self.members:
+                if m.initial is not None and cfg.initial_weight > 0:
+                    m.initial_ready.fill_(True)
             if self.step % cfg.log_every == 0 or self.step == stop:
                 rate = (self.step - n0) / (time.perf_counter() - t0)
                 with open(self.out / "metrics.jsonl", "a") as f:
@@ -480,8 +533,16 @@ def train_predictor(
     data = sequence_data(scene.capture.motion, targets, dev)
     splits = scene.capture.splits
     train_segs = split_segments(data.frames, splits["train"].frames)
-    model = build_predictor(scene, cfg.model, targets.latents.shape[-1], net.avatar.config.pca, cfg.seed).to(dev)
-    info = prepare_model(model, data, train_segs)
+    if cfg.ensemble < 1:
+        raise ValueError(f"ensemble must be >= 1, got {cfg.ensemble}")
+    members = [
+        build_predictor(
+            scene, cfg.model, targets.latents.shape[-1], net.avatar.config.pca, cfg.seed + MEMBER_SEED_STRIDE * k
+        )
+        for k in range(cfg.ensemble)
+    ]
+    info = [prepare_model(m.to(dev), data, train_segs) for m in members][0]  # every member: the same statistics
+    model = members[0] if cfg.ensemble == 1 else PredictorEnsemble(members)
     print(
         f"[predictor] {info['train_frames']} train frames in {len(train_segs)} segments, latent PCA keeps "
         f"{100 * info['latent_pca_explained_variance']:.1f}% of the variance",
