@@ -185,7 +185,7 @@ def test_predictor_cli_on_a_tiny_avatar_run(tiny_dataset, tmp_path):
         )
         == 0
     )
-    Predictor(run=run, steps=3, batch_size=2, window=4, log_every=1, device="cpu").execute()
+    Predictor(run=run, train=PredictorTrainConfig(steps=3, batch_size=2, window=4, log_every=1), device="cpu").execute()
     d = run / "predictor"
     res = json.loads((d / "eval.json").read_text())
     assert res["test"]["frames"] >= 1 and res["test"]["encoder_l1"] == 0.0 and res["step"] == 3
@@ -195,7 +195,7 @@ def test_predictor_cli_on_a_tiny_avatar_run(tiny_dataset, tmp_path):
     m = predictor_from_checkpoint(d / "latest.pt")
     assert m.num_anchors == lat.shape[1] and bool(m.initial_ready)
     # already done: resumes at 3, re-evaluates
-    Predictor(run=run, steps=3, batch_size=2, window=4, device="cpu").execute()
+    Predictor(run=run, train=PredictorTrainConfig(steps=3, batch_size=2, window=4), device="cpu").execute()
 
 
 def _member(seed: int, data: SequenceData) -> AppearancePredictor:
