@@ -541,7 +541,12 @@ def train_predictor(
         )
         for k in range(cfg.ensemble)
     ]
-    info = [prepare_model(m.to(dev), data, train_segs) for m in members][0]  # every member: the same statistics
+    members = [m.to(dev) for m in members]
+    info = prepare_model(members[0], data, train_segs)
+    for m in members[1:]:  # the fitted normalisation and latent PCA depend on the data only: fit once, copy
+        fitted = dict(members[0].named_buffers())
+        for name, buf in m.named_buffers():
+            buf.copy_(fitted[name])
     model = members[0] if cfg.ensemble == 1 else PredictorEnsemble(members)
     print(
         f"[predictor] {info['train_frames']} train frames in {len(train_segs)} segments, latent PCA keeps "
