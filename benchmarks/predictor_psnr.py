@@ -4,7 +4,8 @@
         --predictors base=out/demo/run_ours/predictor/latest.pt abs=out/demo/run_ours/pred_exp/e3/latest.pt \
         --every 3 --json docs/benchmarks/predictor_variants_small.json
 
-Rolls every predictor out over the whole test segment (latents only: zero init, and encoder init = the
+A label's checkpoints joined by ``+`` are averaged step by step (``PredictorEnsemble``, as ``--ensemble K``
+trains them). Rolls every predictor out over the whole test segment (latents only: zero init, and encoder init = the
 encoder's latents of the first test frame, then free-running) and renders every ``--every``-th test frame
 from every held-out camera with those latents, the encoder's and the training-mean latent. Prints one JSON
 line per source: PSNR inside the mask (pooled squared error over the rendered views), the recovery
@@ -26,7 +27,9 @@ import torch
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", type=Path, required=True)
-    ap.add_argument("--predictors", nargs="+", default=[], help="LABEL=CHECKPOINT")
+    ap.add_argument(
+        "--predictors", nargs="+", default=[], help="LABEL=CHECKPOINT, or LABEL=CKPT+CKPT+... for their ensemble"
+    )
     ap.add_argument("--every", type=int, default=3)
     ap.add_argument("--image-scale", type=float, default=1.0)
     ap.add_argument("--json", type=Path, default=None)
@@ -37,6 +40,7 @@ def main() -> None:
     from gsavatar.drive.metrics import load_ground_truth
     from gsavatar.drive.motion import load_driving_motion
     from gsavatar.runs.latents import mean_train_latent
+    from gsavatar.models.predictor import PredictorEnsemble
     from gsavatar.runs.load import load_run, predictor_from_checkpoint
     from gsavatar.train.predictor import extract_targets
 
@@ -66,8 +70,9 @@ def main() -> None:
         "mean latent": mean_train_latent(net, scene, d.device, loaded.config.texture_source).cpu().expand_as(enc),
     }
     for spec in a.predictors:
-        label, _, path = spec.partition("=")
-        m = predictor_from_checkpoint(Path(path))
+        label, _, paths = spec.partition("=")
+        ms = [predictor_from_checkpoint(Path(p)) for p in paths.split("+")]  # A+B+...: their step-wise ensemble
+        m = ms[0] if len(ms) == 1 else PredictorEnsemble(ms).eval()
         with torch.no_grad():
             sources[f"{label} zero init"] = m.rollout(P, R, Tr, m.zero_latents())
             sources[f"{label} encoder init"] = m.rollout(P, R, Tr, enc[0], first_is_given=True)
