@@ -310,54 +310,114 @@ def test_marker_keypoints_ride_rigidly_on_their_joint():
     torch.testing.assert_close(got, ref, atol=1e-12, rtol=0)
 
 
-def test_fit_recovers_a_fake_smplx_pose_and_shape(tmp_path):
-    """A fake SMPL-X body (tests/importers/fake_smplx.py) of a known shape in known poses, seen by 8 cameras
-    without noise: fitting pose, root and the 10 betas from the mean shape's rig recovers the joints, the pose
-    and the shape; fitting without the shape leaves the joint error the shape explains."""
+def fake_smplx_capture(root: Path, model, F: int, cams: list[Camera]) -> Path:
+    """A capture whose body is the fake SMPL-X model at its mean shape, as `avatar-prep import` writes one (images
+    are noise: the fit reads only cameras and keypoints)."""
+    from gsavatar.data_schema import Motion, Split, write_capture_metadata
+    from gsavatar.data_schema.template import save_template
+    from gsavatar.importers.smplx_body import smplx_template
+    from gsavatar.utils.io import write_image
+
+    body = smplx_template(model, np.zeros(10))
+    save_template(body.template, root / "template")
+    body.rig.save(root / "template" / "rig.json")
+    names = [c.name for c in cams]
+    write_capture_metadata(
+        root,
+        30.0,
+        F,
+        {c.name: c for c in cams},
+        {"train": Split(list(range(F - 1)), names[:-1]), "test": Split([F - 1], names[-1:])},
+    )
+    z = np.zeros((F, 3), np.float32)
+    Motion(np.zeros((F, body.rig.pose_dim), np.float32), z, z).save(root / "motion.npz")
+    rng = np.random.default_rng(0)
+    for c in cams:
+        for f in range(F):
+            write_image(root / "images" / c.name / f"{f:08d}.png", rng.random((c.height, c.width, 3)))
+            write_image(root / "masks" / c.name / f"{f:08d}.png", np.ones((c.height, c.width), np.float32))
+    return root
+
+
+def test_fit_body_smplx_model_fits_the_shape_and_writes_its_template(tmp_path):
+    """`fit-body --smplx-model` on a capture of the fake SMPL-X body (tests/importers/fake_smplx.py) at its mean
+    shape, with noiseless COCO-WholeBody keypoints of the body at a known shape (10 betas in [-3, 3]) in known poses
+    seen by 8 cameras: the written template is the model at the recovered betas, the rig's heads are the shape's,
+    the poses reproduce the joints, far better than the same fit without the shape; a re-run reuses the shape and
+    the shards."""
     import torch
 
-    from gsavatar.fitting.fit import ShapeBasis
+    from gsavatar.data_schema import load_capture
+    from gsavatar.fitting.synthetic import write_coco_wholebody
     from gsavatar.geometry.lbs import pose_joints
-    from gsavatar.importers.smplx_body import smplx_rig, smplx_shape_basis
+    from gsavatar.importers.smplx_body import shaped_vertices, smplx_rig, smplx_shape_basis
     from gsavatar.importers.smplx_model import load_smplx_model
     from importers.fake_smplx import write_fake_smplx
 
-    model = load_smplx_model(write_fake_smplx(tmp_path / "SMPLX_NEUTRAL.npz", rings=4, segs=8))
+    model_file = write_fake_smplx(tmp_path / "SMPLX_NEUTRAL.npz", rings=4, segs=8)
+    model = load_smplx_model(model_file)
     heads0, dheads = smplx_shape_basis(model, 10)
-    rng = np.random.default_rng(3)
-    betas = rng.uniform(-3.0, 3.0, 10)
+    betas = np.random.default_rng(3).uniform(-3.0, 3.0, 10)
     true_rig = smplx_rig(model, heads0 + np.einsum("b,bjk->jk", betas, dheads))
-    mean_rig = smplx_rig(model, heads0)
     F = 6
     pose = np.zeros((F, true_rig.pose_dim))
     names = [p.name for p in true_rig.params]
     for j, amp in (("left_shoulder", 0.5), ("right_elbow", 0.8), ("left_knee", 0.6), ("spine1", 0.2)):
         s = sum(p.size for p in true_rig.params[: names.index(f"{j}.aa")])
         pose[:, s : s + 3] = amp * np.sin(np.linspace(0, 2, F))[:, None] * np.array([1.0, 0.3, -0.5])
-    rr = np.tile([0.0, 0.4, 0.0], (F, 1))
-    tr = np.tile([0.05, 1.4, -0.1], (F, 1))  # the fake body hangs below its root: centred in the views
+    rr, tr = np.tile([0.0, 0.4, 0.0], (F, 1)), np.tile([0.05, 1.4, -0.1], (F, 1))
     t64 = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
     J = pose_joints(true_rig, t64(pose), t64(rr), t64(tr)).numpy()
-    jm = load_joint_map("coco_wholebody", mean_rig)
     cams = ring_cameras(8, radius=2.5)
+    cap_dir = fake_smplx_capture(tmp_path / "cap", model, F, cams)
+    jm = load_joint_map("coco_wholebody", true_rig)
     kp = synthetic_keypoints(J[:, jm.joints], cams, jm, noise_px=0.0, outlier_fraction=0.0, drop_fraction=0.0)
-    tri = triangulate(kp, cams)
-    cfg = FitConfig(w_pose=1e-5, w_shape=1e-6, steps=1500)
-    shape = ShapeBasis(heads0, dheads)
-    res = fit_sequence(mean_rig, cams, kp, jm, tri.points, tri.inliers, cfg, shape=shape)
-    fitted_rig = smplx_rig(model, heads0 + np.einsum("b,bjk->jk", res["betas"], dheads))
-    Jf = pose_joints(fitted_rig, *(t64(res[k]) for k in ("pose", "root_rotation", "root_translation"))).numpy()
+    kdir = tmp_path / "kp"
+    write_coco_wholebody(kdir, kp, [c.name for c in cams], list(range(F)))
+    out = tmp_path / "fitted"
+    flags = ["--fit.w-pose", "1e-5", "--fit.w-shape", "1e-6", "--fit.steps", "400"]
+    shape = ["--smplx-model", str(model_file), "--shape-frames", "6", "--shape-steps", "1500"]
+    assert run_fit(cap_dir, kdir, out, *flags, *shape) == 0
+    fitted = load_capture(out)
+    rep = json.loads((out / "fit" / "report.json").read_text())
+    got = np.array(rep["shape"]["betas"])
+    verts_err_mm = 1000 * np.abs(fitted.template.vertices - shaped_vertices(model, betas)).max()
+    heads_err_mm = 1000 * np.linalg.norm(fitted.rig.heads() - true_rig.heads(), axis=-1).mean()
+    m = fitted.motion
+    Jf = pose_joints(fitted.rig, t64(m.pose), t64(m.root_rotation), t64(m.root_translation)).numpy()
     err_mm = 1000 * np.linalg.norm(Jf[:, jm.joints] - J[:, jm.joints], axis=-1).mean()
-    heads_err_mm = 1000 * np.linalg.norm(fitted_rig.heads() - true_rig.heads(), axis=-1).mean()
-    no_shape = fit_sequence(mean_rig, cams, kp, jm, tri.points, tri.inliers, cfg)
-    Jn = pose_joints(mean_rig, *(t64(no_shape[k]) for k in ("pose", "root_rotation", "root_translation"))).numpy()
+    assert run_fit(cap_dir, kdir, tmp_path / "no_shape", *flags) == 0
+    m = load_capture(tmp_path / "no_shape").motion
+    Jn = pose_joints(load_capture(cap_dir).rig, t64(m.pose), t64(m.root_rotation), t64(m.root_translation)).numpy()
     err_no_shape_mm = 1000 * np.linalg.norm(Jn[:, jm.joints] - J[:, jm.joints], axis=-1).mean()
-    beta_err = np.abs(res["betas"] - betas)
     print(
-        f"fake SMPL-X: joints {err_mm:.2f} mm (without the shape {err_no_shape_mm:.2f} mm), rest heads "
-        f"{heads_err_mm:.2f} mm, |beta error| mean {beta_err.mean():.3f} max {beta_err.max():.3f}"
+        f"fit-body --smplx-model: |beta error| mean {np.abs(got - betas).mean():.3f} max "
+        f"{np.abs(got - betas).max():.3f}, template vertices max {verts_err_mm:.2f} mm, rest heads "
+        f"{heads_err_mm:.2f} mm, joints {err_mm:.2f} mm "
+        f"(without the shape {err_no_shape_mm:.2f} mm)"
     )
-    # measured 2026-12-03: joints 0.97 mm (22.4 mm without the shape), heads 0.85 mm, |beta error| max 0.061
-    assert err_mm < 2.0 and err_no_shape_mm > 5 * err_mm
-    assert heads_err_mm < 2.0
-    assert beta_err.max() < 0.15
+    assert np.abs(got - betas).max() < 0.15 and heads_err_mm < 2.0 and err_mm < 2.0 and verts_err_mm < 10.0
+    assert err_no_shape_mm > 5 * err_mm
+    assert not (out / "template" / "mesh.obj").is_symlink()  # written, the input's template untouched
+    assert np.abs(load_capture(cap_dir).template.vertices - shaped_vertices(model, np.zeros(10))).max() < 1e-6
+    np.testing.assert_array_equal(fitted.template.faces, model.faces)
+    before = (out / "fit" / "shape.npz").stat().st_mtime_ns
+    assert run_fit(cap_dir, kdir, out, *flags, *shape) == 0
+    rep = json.loads((out / "fit" / "report.json").read_text())
+    assert rep["shape"]["reused"] and rep["shards"]["reused"] == rep["shards"]["total"]
+    assert (out / "fit" / "shape.npz").stat().st_mtime_ns == before
+
+
+def test_fit_body_smplx_model_refuses_a_capture_of_another_body(tiny_capture, tiny_fit_inputs, tmp_path, capsys):
+    from importers.fake_smplx import write_fake_smplx
+
+    cap, names, _, kp = tiny_fit_inputs
+    kdir = tmp_path / "kp"
+    write_openpose(kdir, kp, names, list(range(cap.num_frames)))
+    model_file = write_fake_smplx(tmp_path / "SMPLX_NEUTRAL.npz", rings=4, segs=8)
+    out = tmp_path / "out"
+    assert run_fit(tiny_capture, kdir, out, "--smplx-model", str(model_file)) != 0
+    err = capsys.readouterr().err
+    assert "rig.json" in err and "not an SMPL-X rig" in err and not out.exists()
+    assert run_fit(tiny_capture, kdir, out, "--smplx-model", str(tmp_path / "missing.npz")) != 0
+    assert "missing.npz" in capsys.readouterr().err and not out.exists()

@@ -9,6 +9,11 @@ masks (linked) and the fitted ``motion.npz``, which ``avatar-prep all`` takes un
 ``report.json`` (per-frame reprojection error, triangulation inliers, skipped frames, timings), one
 ``shards/shard-NNNNN.npz`` per shard (a re-run reuses the shards whose inputs and settings are unchanged)
 and ``overlay.png`` (the fitted skeleton and the detections over one image per camera).
+
+With ``--smplx-model`` (a capture whose body ``avatar-prep import`` made from that model) the body's shape is fitted
+too: first one ``betas`` for the whole sequence, with the poses of ``--shape-frames`` frames spread over it
+(``C2/fit/shape.npz``), then every shard's poses on the body of that shape; ``C2/template`` is the model at the
+fitted betas (the capture's faces, UVs and skin weights kept) and its rig.
 """
 
 from __future__ import annotations
@@ -27,7 +32,8 @@ import torch
 
 from gsavatar.data_schema import load_capture
 from gsavatar.data_schema.capture import Motion, write_capture_metadata
-from gsavatar.fitting.fit import FitConfig, fit_sequence
+from gsavatar.data_schema.template import save_template
+from gsavatar.fitting.fit import FitConfig, ShapeBasis, fit_sequence
 from gsavatar.fitting.keypoints import detect_format, load_joint_map, read_keypoints
 from gsavatar.fitting.triangulate import project_world, triangulate
 from gsavatar.geometry.lbs import pose_joints
@@ -60,6 +66,17 @@ class FitBody:
     """How images, masks and the template get into the output capture."""
     fit: FitConfig = field(default_factory=FitConfig)
     """Fit weights and schedule."""
+    smplx_model: Path | None = None
+    """The SMPL-X model file (``SMPLX_NEUTRAL.npz``) the capture's body was imported from: fit its shape too (one
+    ``betas`` per sequence) and write the reshaped template. Default: keep the capture's template (the anny body of
+    the synthetic captures has no linear shape space)."""
+    num_betas: int = 10
+    """Shape coefficients fitted with ``--smplx-model``."""
+    shape_frames: int = 60
+    """Frames, spread evenly over the sequence, whose poses are fitted together with the shape."""
+    shape_steps: int = 1500
+    """Adam steps of the shape stage on pose + root + shape (after ``--fit.root-steps`` on the root alone); the
+    shards' pose fit then takes ``--fit.steps``."""
     force: bool = False
     """Write into a non-empty folder that is not a gsavatar capture."""
 
@@ -71,12 +88,99 @@ FIT_VERSION = 2
 """Bumped whenever the fit's result for the same inputs changes (shards of another version are refitted)."""
 
 
-def _fingerprint(keypoints: np.ndarray, args: FitBody, joint_map) -> str:
+def _fingerprint(keypoints: np.ndarray, args: FitBody, joint_map, *extra: bytes) -> str:
     h = hashlib.sha256(np.ascontiguousarray(keypoints, np.float64).tobytes())
     h.update(f"fit-body v{FIT_VERSION}".encode())
     h.update(json.dumps(dataclasses.asdict(args.fit), sort_keys=True).encode())
     h.update(np.asarray(joint_map.keypoints).tobytes() + np.asarray(joint_map.joints).tobytes())
+    h.update(np.ascontiguousarray(joint_map.rest_offsets(), np.float64).tobytes())
+    for e in extra:
+        h.update(e)
     return h.hexdigest()[:16]
+
+
+def _smplx_body(path: Path, cap):
+    """The SMPL-X model of ``path`` after checking that ``cap``'s body was made from it. -> model"""
+    from gsavatar.importers.smplx_model import SMPLX_JOINT_NAMES, load_smplx_model
+
+    model = load_smplx_model(path)
+    names = tuple(j.name for j in cap.rig.joints)
+    if names != SMPLX_JOINT_NAMES:
+        raise SchemaError(
+            Path(cap.root) / "template" / "rig.json",
+            "joints",
+            f"is not an SMPL-X rig ({len(names)} joints, first {list(names[:3])}); --smplx-model needs a capture "
+            "whose body `avatar-prep import` made from that model",
+        )
+    if len(cap.template.vertices) != model.num_vertices:
+        raise SchemaError(
+            Path(cap.root) / "template" / "mesh.obj",
+            "v",
+            f"has {len(cap.template.vertices)} vertices, the model {path} {model.num_vertices}: not its body",
+        )
+    return model
+
+
+def _shaped_body(model, cap, betas: np.ndarray):
+    """The capture's template (faces, UVs, skin weights, face mask kept) with the model's vertices at ``betas``,
+    and the SMPL-X rig of that shape. -> (template, rig)"""
+    from gsavatar.importers.smplx_body import shaped_vertices, smplx_rig
+
+    verts = shaped_vertices(model, betas)
+    t = dataclasses.replace(cap.template, vertices=verts.astype(np.float32))
+    return t, smplx_rig(model, model.J_regressor.astype(np.float64) @ verts)
+
+
+def fit_shape(args: FitBody, cap, model, fmt: str, kp, tri, seen: np.ndarray, out: Path) -> tuple[np.ndarray, dict]:
+    """One shape for the sequence: ``betas`` fitted with the poses of up to ``args.shape_frames`` seen frames spread
+    over it (no temporal terms: the frames are not neighbours); reused from ``out/fit/shape.npz`` when its inputs
+    and settings are unchanged. -> (betas [B] float64, report entry)"""
+    from gsavatar.importers.smplx_body import smplx_shape_basis
+
+    if min(args.num_betas, args.shape_frames, args.shape_steps) < 1:
+        raise ValueError(
+            f"--num-betas, --shape-frames and --shape-steps must be >= 1, got {args.num_betas}, {args.shape_frames}, "
+            f"{args.shape_steps}"
+        )
+    heads0, dheads = smplx_shape_basis(model, min(args.num_betas, model.num_betas))
+    mean_t, mean_rig = _shaped_body(model, cap, np.zeros(dheads.shape[0]))
+    jm = load_joint_map(fmt, mean_rig, args.joint_map, mean_t)
+    idx = np.flatnonzero(seen)
+    sel = idx[np.unique(np.linspace(0, len(idx) - 1, min(args.shape_frames, len(idx))).round().astype(int))]
+    model_sha = hashlib.sha256(Path(model.path).read_bytes()).hexdigest()
+    fp = _fingerprint(
+        kp[sel], args, jm, b"shape", sel.tobytes(), f"{dheads.shape[0]} {args.shape_steps}".encode(), model_sha.encode()
+    )
+    path = out / "fit" / "shape.npz"
+    t0 = time.perf_counter()
+    if path.exists() and str(read_npz(path).get("fingerprint", "")) == fp:
+        betas, reused = read_npz(path)["betas"].astype(np.float64), True
+    else:
+        cfg = dataclasses.replace(args.fit, w_smooth=0.0, w_smooth_pose=0.0, steps=args.shape_steps)
+        with progress_bar(
+            f"fit-body shape ({len(sel)} frames, {dheads.shape[0]} betas)", cfg.root_steps + cfg.steps
+        ) as bar:
+            r = fit_sequence(
+                mean_rig,
+                [cap.cameras[n] for n in sorted(cap.cameras)],
+                kp[sel],
+                jm,
+                tri.points[sel],
+                tri.inliers[sel],
+                cfg,
+                progress=lambda i, n: bar.advance(),
+                shape=ShapeBasis(heads0, dheads),
+            )
+        betas, reused = r["betas"].astype(np.float64), False
+        atomic_save_npz(path, fingerprint=np.array(fp), betas=betas, frames=sel)
+    entry = {
+        "model": str(model.path),
+        "betas": [float(b) for b in betas],
+        "frames": [int(f) for f in sel],
+        "reused": reused,
+        "seconds": round(time.perf_counter() - t0, 3),
+    }
+    return betas, entry
 
 
 def _link_tree(src: Path, dst: Path, how: str) -> int:
@@ -96,6 +200,7 @@ def fit_body(args: FitBody) -> dict:
     if args.shard_frames < 1:
         raise ValueError(f"--shard-frames must be >= 1, got {args.shard_frames}")
     fmt = detect_format(args.keypoints) if args.format == "auto" else args.format
+    model = None if args.smplx_model is None else _smplx_body(Path(args.smplx_model), cap)
     jm = load_joint_map(fmt, cap.rig, args.joint_map, cap.template)
     names = sorted(cap.cameras)
     cams = [cap.cameras[n] for n in names]
@@ -122,7 +227,13 @@ def fit_body(args: FitBody) -> dict:
             f"the person is not found in enough views in any frame (needs {MIN_POINTS} "
             "keypoints seen by >= 2 agreeing views)",
         )
-    fp = _fingerprint(kp, args, jm)
+    template, rig, shape_entry, extra = cap.template, cap.rig, None, b""
+    if model is not None:
+        betas, shape_entry = fit_shape(args, cap, model, fmt, kp, tri, seen, out)
+        template, rig = _shaped_body(model, cap, betas)
+        jm = load_joint_map(fmt, rig, args.joint_map, template)
+        extra = np.asarray(betas, np.float64).tobytes()
+    fp = _fingerprint(kp, args, jm, extra)
     shard_dir = out / "fit" / "shards"
     results, reused, t_fit = [], 0, 0.0
     S = args.shard_frames
@@ -139,7 +250,7 @@ def fit_body(args: FitBody) -> dict:
                     bar.advance()
                     continue
             t1 = time.perf_counter()
-            r = fit_sequence(cap.rig, cams, kp[a:b], jm, tri.points[a:b], tri.inliers[a:b], args.fit)
+            r = fit_sequence(rig, cams, kp[a:b], jm, tri.points[a:b], tri.inliers[a:b], args.fit)
             t_fit += time.perf_counter() - t1
             atomic_save_npz(path, fingerprint=np.array(fp), **r)
             results.append(r)
@@ -147,8 +258,11 @@ def fit_body(args: FitBody) -> dict:
     res = {k: np.concatenate([r[k] for r in results]) for k in results[0]}
     motion = Motion(res["pose"], res["root_rotation"], res["root_translation"], cap.motion.face)
     # the capture: metadata rewritten, template/images/masks linked, the fitted motion
-    for sub in ("template", "images", "masks"):
+    for sub in ("template", "images", "masks") if model is None else ("images", "masks"):
         _link_tree(Path(args.capture) / sub, out / sub, args.link)
+    if model is not None:  # the reshaped body replaces the capture's (written, not linked)
+        save_template(template, out / "template")
+        rig.save(out / "template" / "rig.json")
     write_capture_metadata(out, cap.fps, cap.num_frames, cap.cameras, cap.splits)
     motion.save(out / "motion.npz")
     inl = tri.inliers[:, jm.keypoints]  # [F, M, C]
@@ -183,10 +297,14 @@ def fit_body(args: FitBody) -> dict:
         "shards": {"total": n_shards, "reused": reused},
         "config": dataclasses.asdict(args.fit),
     }
+    if shape_entry is not None:
+        report["shape"] = shape_entry
     overlay = out / "fit" / "overlay.png"
     write_image(
         overlay,
-        overlay_picture(cap, cams, names, kp, tri, jm, res, int(np.flatnonzero(seen)[len(np.flatnonzero(seen)) // 2])),
+        overlay_picture(
+            cap, rig, cams, names, kp, tri, jm, res, int(np.flatnonzero(seen)[len(np.flatnonzero(seen)) // 2])
+        ),
     )
     report["overlay"] = str(overlay.relative_to(out))
     atomic_write_json(out / "fit" / "report.json", report)
@@ -198,18 +316,18 @@ def fit_body(args: FitBody) -> dict:
     return report
 
 
-def overlay_picture(cap, cams, names, kp, tri, jm, res, frame: int, tile: int = 256) -> np.ndarray:
+def overlay_picture(cap, rig, cams, names, kp, tri, jm, res, frame: int, tile: int = 256) -> np.ndarray:
     """The fitted skeleton (white bones, blue joints) and the frame's detections (green: inlier, red: rejected)
     over each camera's image of ``frame``, tiled in a grid. -> [H, W, 3] float32 in [0, 1]"""
     with torch.no_grad():
         J = pose_joints(
-            cap.rig,
+            rig,
             *(
                 torch.as_tensor(res[k][frame : frame + 1], dtype=torch.float64)
                 for k in ("pose", "root_rotation", "root_translation")
             ),
         )[0].numpy()
-    parents = cap.rig.parents()
+    parents = rig.parents()
     pix, _ = project_world(J, cams)  # [J, C, 2]
     tiles = []
     for c, name in enumerate(names):
