@@ -278,3 +278,72 @@ def test_context_noise_perturbs_only_the_fed_back_inputs():
     torch.testing.assert_close(n1[:, :1], first)
     with pytest.raises(ValueError, match="context_noise"):
         PredictorTrainer(m, data, [(0, 40)], train_cfg(context_noise=-1.0), Path("/nonexistent/never-written"))
+
+
+def test_feature_noise_perturbs_the_standardised_pose_features_only():
+    data = synthetic(40)
+    m = model()
+    prepare_model(m, data, [(0, 40)])
+    with torch.no_grad():
+        for p in m.parameters():
+            p.add_(0.05 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
+    rows, seg = WindowSampler([(0, 40)], 5).sample(3, torch.Generator().manual_seed(1))
+    ctx = data.latents[rows[:, 0] - 1]
+    clean = unroll(m, data, rows, seg, ctx)
+    g = lambda: torch.Generator().manual_seed(7)  # noqa: E731
+    n1, n2 = (unroll(m, data, rows, seg, ctx, gen=g(), feature_noise=0.5) for _ in range(2))
+    assert torch.equal(n1, n2) and (n1 - clean).abs().max() > 1e-4
+    # oracle: the first step equals the forward pass on features shifted by 0.5 eps in standardised units, i.e.
+    # raw features shifted by 0.5 eps / scale (constant features, scale 0, untouched)
+    eps = torch.randn((3, m.num_slots, m.feature_dim), generator=g())
+    hist = history_index(rows[:, 0], seg, N)
+    x = m.features(data.pose[hist], data.root_rotation[hist], data.root_translation[hist])
+    scale = m.feature_scale
+    shifted = torch.where(scale > 0, x + 0.5 * eps / scale.clamp_min(1e-30), x)
+    torch.testing.assert_close(
+        (shifted - m.feature_mean) * scale, (x - m.feature_mean) * scale + 0.5 * eps * (scale > 0)
+    )
+    torch.testing.assert_close(
+        n1[:, 0], m(data.pose[hist], data.root_rotation[hist], data.root_translation[hist], ctx, 0.5 * eps)
+    )
+    with pytest.raises(ValueError, match="feature_noise"):
+        PredictorTrainer(m, data, [(0, 40)], train_cfg(feature_noise=float("nan")), Path("/nonexistent/never-written"))
+
+
+def test_weight_average_follows_the_ema_recursion_resumes_and_is_what_the_checkpoint_drives(tmp_path):
+    """ema = d: after every step avg <- d avg + (1 - d) w (checked against a naive recursion over the training
+    weights of every step); the checkpoint's predictor is the average, a resumed run is identical, and a run
+    without the average refuses to resume it."""
+    torch.set_num_threads(1)
+    data = synthetic(60)
+    d = 0.7
+    m = model()
+    prepare_model(m, data, [(0, 60)])
+    tr = PredictorTrainer(m, data, [(0, 60)], train_cfg(steps=5, ema=d), tmp_path / "a")
+    ref = {k: v.detach().clone() for k, v in m.named_parameters()}
+    # naive oracle: the same steps one at a time, averaging the weights after each by hand
+    for s in range(5):
+        tr.cfg.max_steps_this_run = 1
+        tr.train()
+        for k, v in m.named_parameters():
+            ref[k] = d * ref[k] + (1 - d) * v.detach()
+    avg = dict(tr.result.named_parameters())
+    for k in ref:
+        torch.testing.assert_close(avg[k], ref[k], rtol=1e-6, atol=1e-7)
+    assert any(not torch.equal(avg[k], dict(m.named_parameters())[k]) for k in ref)
+    c = predictor_from_checkpoint(tmp_path / "a" / "latest.pt")
+    x = (data.pose[:N][None], data.root_rotation[:N][None], data.root_translation[:N][None], data.latents[:1])
+    assert torch.equal(c(*x), tr.result.eval()(*x))
+    # resuming mid-way gives the same average as one uninterrupted run
+    m2 = model()
+    prepare_model(m2, data, [(0, 60)])
+    PredictorTrainer(m2, data, [(0, 60)], train_cfg(steps=5, ema=d, max_steps_this_run=2), tmp_path / "b").train()
+    m3 = model()
+    prepare_model(m3, data, [(0, 60)])
+    t3 = PredictorTrainer(m3, data, [(0, 60)], train_cfg(steps=5, ema=d), tmp_path / "b")
+    t3.train()
+    assert all(torch.equal(v, avg[k]) for k, v in t3.result.named_parameters())
+    with pytest.raises(Exception, match="ema"):
+        PredictorTrainer(model(), data, [(0, 60)], train_cfg(steps=6), tmp_path / "b")
+    with pytest.raises(ValueError, match="ema"):
+        PredictorTrainer(model(), data, [(0, 60)], train_cfg(ema=1.0), Path("/nonexistent/never-written"))

@@ -594,12 +594,18 @@ class AppearancePredictor(_Streaming, nn.Module):
 
     # ------------------------------------------------------------------ forward
     def forward(
-        self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor, prev_latents: Tensor
+        self,
+        pose_window: Tensor,
+        root_rot_window: Tensor,
+        root_trans_window: Tensor,
+        prev_latents: Tensor,
+        feature_noise: Tensor | None = None,
     ) -> Tensor:
         """Latents of the window's last frame t.
 
         pose_window [B, N_b, P] (frames t-N_b+1..t), root_rot_window [B, N_b, 3],
-        root_trans_window [B, N_b, 3], prev_latents [B, A, L] (frame t-1) -> [B, A, L] (clamped)
+        root_trans_window [B, N_b, 3], prev_latents [B, A, L] (frame t-1) -> [B, A, L] (clamped).
+        ``feature_noise`` [B, S, F] (training only): added to the standardised pose-token features.
         """
         N, A, L = self.config.history, self.num_anchors, self.config.latent_dim
         _check("pose_window", pose_window, (None, N, self.pose_dim))
@@ -609,6 +615,8 @@ class AppearancePredictor(_Streaming, nn.Module):
         _check("prev_latents", prev_latents, (B, A, L))
         x, xj = self.input_features(pose_window, root_rot_window, root_trans_window)
         x = (x - self.feature_mean) * self.feature_scale
+        if feature_noise is not None:
+            x = x + feature_noise * (self.feature_scale > 0)  # dropped (constant) features stay zero
         lat = (prev_latents - self.latent_mean) / self.latent_scale  # [B, A, L] standardised
         parts = [self.pose_tokens(x) + self.type_embedding[0]]
         if xj is not None:
@@ -703,8 +711,13 @@ class PredictorEnsemble(_Streaming, nn.Module):
         return torch.stack([m.initial_latents(pose, trained_only) for m in self.members]).mean(0)
 
     def forward(
-        self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor, prev_latents: Tensor
+        self,
+        pose_window: Tensor,
+        root_rot_window: Tensor,
+        root_trans_window: Tensor,
+        prev_latents: Tensor,
+        feature_noise: Tensor | None = None,
     ) -> Tensor:
         """Mean of the members' :meth:`AppearancePredictor.forward` (same arguments).  -> [B, A, L]"""
-        outs = [m(pose_window, root_rot_window, root_trans_window, prev_latents) for m in self.members]
+        outs = [m(pose_window, root_rot_window, root_trans_window, prev_latents, feature_noise) for m in self.members]
         return torch.stack(outs).mean(0)

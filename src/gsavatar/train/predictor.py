@@ -19,6 +19,7 @@ AdamW (lr 1e-3). Batches depend only on (seed, step), so a resumed run is identi
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import math
@@ -70,11 +71,22 @@ class PredictorTrainConfig:
     """Weight of the InitialLatentNet L1 loss (its parameters are disjoint from the predictor's)."""
     detach_feedback: bool = False
     """Stop gradients through the fed-back predictions (default: backprop through the unroll)."""
+    feature_noise: float = 0.0
+    """Std of Gaussian noise added, while training only, to the standardised pose-token features (values,
+    velocities, accelerations of every slot; unit variance over the training windows), redrawn at every unroll
+    step; 0 = none (the paper's). A predictor fit to a few hundred frames can tell every training frame apart by
+    its exact pose window and memorise its latents; jittered inputs make nearby windows share one answer. Measured
+    in docs/train.md."""
     context_noise: float = 0.0
     """Std of Gaussian noise added, while training only, to every previous-latents input of the unroll (the
     given context and each fed-back prediction), in units of the per-(anchor, dim) latent scale; 0 = none (the
     paper's). Trains the predictor to correct its own drift instead of trusting the latents fed back; measured in
     docs/train.md."""
+    ema: float = 0.0
+    """Decay of an exponential moving average of the weights, updated after every step (0 = none, the paper's). The
+    average is what is evaluated, saved as the checkpoint's ``predictor`` and driven (the training weights are kept
+    as ``predictor_train`` for resuming): averaging along the late trajectory removes part of the seed-to-seed
+    scatter of a predictor fit to few frames, at no extra training cost. Measured in docs/train.md."""
     seed: int = 0
     """Seed of initialisation and window sampling."""
     ensemble: int = 1
@@ -232,12 +244,14 @@ def unroll(
     detach_feedback: bool = False,
     context_noise: float = 0.0,
     gen: torch.Generator | None = None,
+    feature_noise: float = 0.0,
 ) -> Tensor:
     """Autoregressive unroll over windows, feeding back the predictions.
 
     rows [B, T], seg_start [B], ctx0 [B, A, L] (previous latents of the first frame) -> [B, T, A, L].
     ``context_noise`` > 0: every previous-latents input gets ``context_noise * latent_scale * N(0, 1)``
-    (drawn from ``gen``); the outputs themselves are not perturbed.
+    (drawn from ``gen``); the outputs themselves are not perturbed. ``feature_noise`` > 0: every step's
+    standardised pose-token features get ``feature_noise * N(0, 1)`` (from ``gen``).
     """
     dev = data.pose.device
     hist = history_index(rows.to(dev), seg_start.to(dev)[:, None], model.config.history)  # [B, T, N_b]
@@ -248,7 +262,12 @@ def unroll(
         if context_noise > 0:
             eps = torch.randn(ctx.shape, generator=gen, device=gen.device if gen is not None else None)
             ctx = ctx + context_noise * model.latent_scale * eps.to(ctx)
-        prev = model(pose[:, k], rr[:, k], rt[:, k], ctx)
+        noise = None
+        if feature_noise > 0:
+            shape = (rows.shape[0], model.num_slots, model.feature_dim)
+            eps = torch.randn(shape, generator=gen, device=gen.device if gen is not None else None)
+            noise = feature_noise * eps.to(ctx)
+        prev = model(pose[:, k], rr[:, k], rt[:, k], ctx, noise)
         out.append(prev)
     return torch.stack(out, 1)
 
@@ -275,9 +294,10 @@ def dual_context_loss(
     detach_feedback: bool = False,
     context_noise: float = 0.0,
     gen: torch.Generator | None = None,
+    feature_noise: float = 0.0,
 ) -> DualLoss:
     """Unrolled losses of the GT-context and zero-context passes (one doubled batch), summed
-    (``context_noise``, ``gen``: see :func:`unroll`)."""
+    (``context_noise``, ``gen``, ``feature_noise``: see :func:`unroll`)."""
     B = rows.shape[0]
     dev = data.latents.device
     rows = rows.to(dev)
@@ -292,6 +312,7 @@ def dual_context_loss(
         detach_feedback,
         context_noise,
         gen,
+        feature_noise,
     )  # [2B, T, A, L]
     target = data.latents[rows]  # [B, T, A, L]
     tg, tz = temporal_l1_terms(pred[:B], target), temporal_l1_terms(pred[B:], target)
@@ -415,6 +436,10 @@ class PredictorTrainer:
     ) -> None:
         if not (cfg.context_noise >= 0 and math.isfinite(cfg.context_noise)):
             raise ValueError(f"context_noise must be a finite number >= 0, got {cfg.context_noise}")
+        if not (cfg.feature_noise >= 0 and math.isfinite(cfg.feature_noise)):
+            raise ValueError(f"feature_noise must be a finite number >= 0, got {cfg.feature_noise}")
+        if not 0.0 <= cfg.ema < 1.0:
+            raise ValueError(f"ema must be in [0, 1), got {cfg.ema}")
         self.members = list(model.members) if isinstance(model, PredictorEnsemble) else [model]
         if len(self.members) != cfg.ensemble:
             raise ValueError(f"ensemble = {cfg.ensemble} but the model has {len(self.members)} member(s)")
@@ -429,10 +454,13 @@ class PredictorTrainer:
             "pose_dim": model.pose_dim,
             "num_anchors": model.num_anchors,
             **({"ensemble": cfg.ensemble} if cfg.ensemble > 1 else {}),  # absent = one predictor (older checkpoints)
+            **({"ema": cfg.ema} if cfg.ema > 0 else {}),  # absent = no weight average (older checkpoints)
             **(extra_config or {}),
         }
         self.ckpt = self.out / "latest.pt"
         self.step = 0
+        # the weight average (cfg.ema > 0): a copy of the model whose parameters follow the training weights
+        self.average = copy.deepcopy(model) if cfg.ema > 0 else None
         if self.ckpt.exists():
             state = load_checkpoint(
                 self.ckpt,
@@ -440,6 +468,7 @@ class PredictorTrainer:
                 strict_config_keys=(
                     "model",
                     "ensemble",
+                    "ema",
                     "num_anchors",
                     "pose_dim",
                     "targets_step",
@@ -449,14 +478,33 @@ class PredictorTrainer:
                 ),
                 defaults={"model": {**dataclass_defaults(PredictorConfig), **LEGACY_CONFIG}},
             )
-            model.load_state_dict(state["modules"]["predictor"])
+            if self.average is not None:
+                self.average.load_state_dict(state["modules"]["predictor"])
+                model.load_state_dict(state["modules"]["predictor_train"])
+            else:
+                model.load_state_dict(state["modules"]["predictor"])
             self.optim.load_state_dict(state["optimizer"])
             self.step = int(state["step"])
 
+    @property
+    def result(self) -> AppearancePredictor | PredictorEnsemble:
+        """The predictor this training yields: the weight average with ``ema`` > 0, else the trained model."""
+        return self.average if self.average is not None else self.model
+
+    @torch.no_grad()
+    def _update_average(self) -> None:
+        """``avg <- ema avg + (1 - ema) w`` for every parameter (buffers are fitted once and shared)."""
+        d = self.cfg.ema
+        for a, w in zip(self.average.parameters(), self.model.parameters()):
+            a.lerp_(w, 1.0 - d)
+        for name, buf in self.model.named_buffers():  # initial_ready flips during training
+            self.average.get_buffer(name).copy_(buf)
+
     def save(self) -> None:
-        save_checkpoint(
-            self.ckpt, step=self.step, config=self.config, modules={"predictor": self.model}, optimizer=self.optim
-        )
+        modules = {"predictor": self.result}
+        if self.average is not None:
+            modules["predictor_train"] = self.model
+        save_checkpoint(self.ckpt, step=self.step, config=self.config, modules=modules, optimizer=self.optim)
         set_resume_hint(resume_hint(self.ckpt, self.step))
 
     def loss(self, step: int) -> tuple[Tensor, dict[str, float]]:
@@ -467,7 +515,7 @@ class PredictorTrainer:
         for k, m in enumerate(self.members):
             g = step_generator(cfg.seed + MEMBER_SEED_STRIDE * k, step)
             rows, seg = self.sampler.sample(cfg.batch_size, g)
-            d = dual_context_loss(m, self.data, rows, seg, cfg.detach_feedback, cfg.context_noise, g)
+            d = dual_context_loss(m, self.data, rows, seg, cfg.detach_feedback, cfg.context_noise, g, cfg.feature_noise)
             part, mlogs = d.total, {**d.logs, "gt": float(d.gt.detach()), "zero": float(d.zero.detach())}
             if m.initial is not None and cfg.initial_weight > 0:
                 irows = self.train_rows[
@@ -498,6 +546,8 @@ class PredictorTrainer:
             for m in self.members:
                 if m.initial is not None and cfg.initial_weight > 0:
                     m.initial_ready.fill_(True)
+            if self.average is not None:
+                self._update_average()
             if self.step % cfg.log_every == 0 or self.step == stop:
                 rate = (self.step - n0) / (time.perf_counter() - t0)
                 with open(self.out / "metrics.jsonl", "a") as f:
@@ -510,6 +560,7 @@ class PredictorTrainer:
             if self.step % cfg.checkpoint_every == 0 or self.step == stop:
                 self.save()
         self.model.eval()
+        self.result.eval()
         return {"step": self.step, **logs, "seconds": time.perf_counter() - t0}
 
 
@@ -558,6 +609,7 @@ def train_predictor(
         model, data, train_segs, cfg, d, {"run": str(Path(run).resolve()), "targets_step": loaded.step}
     )
     summary = trainer.train()
+    model = trainer.result
     if not evaluate or trainer.step < cfg.steps:
         return summary
     res = {"step": trainer.step, **info, "code": code_version(), "train": evaluate_predictor(model, data, train_segs)}
