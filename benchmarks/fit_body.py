@@ -54,7 +54,19 @@ def errors(cap, fitted, jm) -> dict:
         axis_angle_to_matrix(d(m0.root_rotation)).numpy(), axis_angle_to_matrix(d(m1.root_rotation)).numpy()
     )
     local = geodesic(L0[:, constrained], L1[:, constrained])
+    # the posed surface (what the avatar sees): template vertices skinned by both motions, every 5th frame
+    from gsavatar.geometry.lbs import lbs
+
+    t = cap.template
+    sub = slice(None, None, 5)
+    V = d(t.vertices)
+    si, sw = torch.as_tensor(t.skin_indices).long(), d(t.skin_weights)
+    V0 = lbs(V, si, sw, d(T0[sub])).numpy()
+    V1 = lbs(V, si, sw, d(T1[sub])).numpy()
+    ev = 1000 * np.linalg.norm(V1 - V0, axis=-1)
     return {
+        "vertex_error_mm": float(ev.mean()),
+        "vertex_error_p95_mm": float(np.percentile(ev, 95)),
         "mpjpe_mapped_mm": float(e[:, jm.joints].mean()),
         "mpjpe_mapped_p95_mm": float(np.percentile(e[:, jm.joints], 95)),
         "mpjpe_all_mm": float(e.mean()),
@@ -102,19 +114,22 @@ def scaling(cap, jm, frames: list[int], views: list[int], seed: int = 0) -> list
     return rows
 
 
-def train_compare(true_cap: Path, fitted_cap: Path, work: Path, true_dataset: Path | None = None) -> dict:
+def train_compare(
+    true_cap: Path, fitted_cap: Path, work: Path, true_dataset: Path | None = None, preset: str = "tiny"
+) -> dict:
     from gsavatar.prep.cli import main as prep
     from gsavatar.train.cli import main as train
 
     out = {}
     for name, cap in (("true_poses", true_cap), ("fitted_poses", fitted_cap)):
-        ds, run = work / f"dataset_{name}", work / f"run_{name}"
+        tag = name if name == "true_poses" or fitted_cap.name == "fitted" else f"{fitted_cap.name}_poses"
+        ds, run = work / f"dataset_{tag}", work / f"run_{tag}_{preset}"
         if name == "true_poses" and true_dataset is not None:
             ds = true_dataset  # prepared before from the same capture: `all` below only checks it
         if prep(["all", "--capture", str(cap), "--out", str(ds)]) != 0:
             raise SystemExit(f"avatar-prep all failed on {cap}")
         t0 = time.perf_counter()
-        if train(["avatar", "--dataset", str(ds), "--out", str(run), "--preset", "tiny"]) != 0:
+        if train(["avatar", "--dataset", str(ds), "--out", str(run), "--preset", preset]) != 0:
             raise SystemExit(f"avatar-train failed on {ds}")
         m = json.loads((run / "eval" / "metrics.json").read_text())
         out[name] = {k: m["test_frames_heldout_cams"][k] for k in ("psnr", "psnr_fg", "ssim")} | {
@@ -136,6 +151,9 @@ def main() -> None:
     ap.add_argument("--no-scaling", action="store_true")
     ap.add_argument("--true-dataset", type=Path, default=None, help="an existing dataset prepared from --capture")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--fit-args", default="", help="extra fit-body flags, e.g. '--fit.w-silhouette 1'")
+    ap.add_argument("--fitted-name", default="fitted", help="folder of the fitted capture under --work")
+    ap.add_argument("--preset", default="tiny", help="avatar-train preset of --train's two avatars")
     a = ap.parse_args()
 
     from gsavatar.data_schema import load_capture
@@ -148,13 +166,14 @@ def main() -> None:
     jm = load_joint_map(a.format, cap.rig, template=cap.template)
     names = sorted(cap.cameras)
     m = cap.motion
-    kdir, fitted = a.work / "keypoints", a.work / "fitted"
+    kdir, fitted = a.work / "keypoints", a.work / a.fitted_name
     if not kdir.exists():
         P = posed_keypoints(cap.rig, jm, m.pose, m.root_rotation, m.root_translation)
         write = write_openpose if a.format == "body25" else write_coco_wholebody
         write(kdir, synthetic_keypoints(P, [cap.cameras[n] for n in names], jm), names, list(range(cap.num_frames)))
     t0 = time.perf_counter()
-    if prep(["fit-body", "--capture", str(a.capture), "--keypoints", str(kdir), "--out", str(fitted)]) != 0:
+    cmd = ["fit-body", "--capture", str(a.capture), "--keypoints", str(kdir), "--out", str(fitted), *a.fit_args.split()]
+    if prep(cmd) != 0:
         raise SystemExit("fit-body failed")
     wall = time.perf_counter() - t0
     report = json.loads((fitted / "fit" / "report.json").read_text())
@@ -175,7 +194,7 @@ def main() -> None:
     if not a.no_scaling:
         res["scaling"] = scaling(cap, jm, a.frames, a.views)
     if a.train:
-        res["train"] = train_compare(a.capture, fitted, a.work, a.true_dataset)
+        res["train"] = train_compare(a.capture, fitted, a.work, a.true_dataset, a.preset)
         print(json.dumps(res["train"]))
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)

@@ -421,3 +421,67 @@ def test_fit_body_smplx_model_refuses_a_capture_of_another_body(tiny_capture, ti
     assert "rig.json" in err and "not an SMPL-X rig" in err and not out.exists()
     assert run_fit(tiny_capture, kdir, out, "--smplx-model", str(tmp_path / "missing.npz")) != 0
     assert "missing.npz" in capsys.readouterr().err and not out.exists()
+
+
+# ----------------------------------------------------------------------------- silhouette term
+def test_silhouette_distance_matches_brute_force():
+    from gsavatar.fitting.fit import silhouette_distance
+
+    rng = np.random.default_rng(0)
+    mask = np.zeros((23, 31), np.float32)
+    mask[5:12, 8:20] = 1.0
+    mask[rng.integers(0, 23, 6), rng.integers(0, 31, 6)] = 1.0
+    d = silhouette_distance(mask, (31, 23))
+    fg = np.argwhere(mask >= 0.5)
+    yy, xx = np.mgrid[:23, :31]
+    ref = np.sqrt(((np.stack([yy, xx], -1)[:, :, None] - fg[None, None]) ** 2).sum(-1)).min(-1)
+    np.testing.assert_allclose(d, ref, atol=1e-3)  # DIST_MASK_PRECISE is exact Euclidean
+    assert np.isnan(silhouette_distance(np.zeros((8, 8)), (4, 4))).all()  # an empty mask says nothing
+
+
+def test_silhouette_loss_against_a_linear_distance_map():
+    """Bilinear sampling of a distance map linear in u is exact: the loss is the Geman-McClure mean of the
+    hand-computed distances of the projected points (pixel centres at +0.5, the renderer's); points behind the
+    camera and maps of NaN (no mask) are skipped."""
+    import torch
+
+    from gsavatar.fitting.fit import Silhouette, geman_mcclure, silhouette_loss
+    from gsavatar.fitting.triangulate import camera_arrays
+    from gsavatar.geometry.lbs import RigTensors
+    from gsavatar.data_schema.rig import Joint, PoseParam, Rig
+
+    rig = Rig([Joint("root", None, (0.0, 0.0, 0.0))], [PoseParam("root.rx", "root", "euler", (1.0, 0.0, 0.0))], {})
+    cams = ring_cameras(2)
+    pts = np.array([[0.0, 0.9, 0.0], [0.2, 1.1, 0.1], [-0.3, 0.7, 0.2]])
+    pix = pixels(pts, cams)  # [N, C, 2]
+    W = 256
+    u = np.arange(W) + 0.5  # pixel centres
+    lin = np.maximum(0.0, u - 120.0)  # distance grows to the right of u = 30
+    dist = np.broadcast_to(lin, (1, 2, W, W)).astype(np.float32).copy()
+    dist[0, 1] = np.nan  # camera 1 has no mask in this frame
+    sil = Silhouette(pts, np.zeros((3, 1), int), np.ones((3, 1)), dist, np.array([[W, W], [W, W]]))
+    z = torch.zeros(1, 3, dtype=torch.float64)
+    pose = torch.zeros(1, 1, dtype=torch.float64)
+    arrs = tuple(torch.as_tensor(a, dtype=torch.float64) for a in camera_arrays(cams))
+    got = silhouette_loss(RigTensors(rig, dtype=torch.float64), sil, pose, z, z, arrs, sigma=4.0)
+    ref = geman_mcclure(torch.as_tensor(np.maximum(0.0, pix[:, 0, 0] - 120.0) ** 2), 4.0).mean()
+    assert 0.5 <= pix[:, 0, 0].min() and pix[:, 0, 0].max() <= W - 0.5  # inside: no border clamping involved
+    assert float(ref) > 1.0  # some points lie right of u = 120: the term is not trivially zero
+    torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-6)
+
+
+def test_fit_body_silhouette_refuses_a_missing_mask_before_writing(tiny_capture, tiny_fit_inputs, tmp_path, capsys):
+    import shutil
+
+    cap, names, _, kp = tiny_fit_inputs
+    kdir = tmp_path / "kp"
+    write_openpose(kdir, kp, names, list(range(cap.num_frames)))
+    copy = tmp_path / "cap"
+    shutil.copytree(tiny_capture, copy)
+    gone = copy / "masks" / names[1] / f"{3:08d}.png"
+    gone.unlink()
+    out = tmp_path / "out"
+    assert run_fit(copy, kdir, out, "--fit.w-silhouette", "1") == 2
+    assert str(gone) in capsys.readouterr().err and not out.exists()
+    assert run_fit(tiny_capture, kdir, out, "--fit.w-silhouette", "1", "--silhouette-points", "0") == 2
+    assert "--silhouette-points" in capsys.readouterr().err and not out.exists()

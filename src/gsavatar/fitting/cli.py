@@ -33,12 +33,20 @@ import torch
 from gsavatar.data_schema import load_capture
 from gsavatar.data_schema.capture import Motion, write_capture_metadata
 from gsavatar.data_schema.template import save_template
-from gsavatar.fitting.fit import FitConfig, ShapeBasis, fit_sequence
+from gsavatar.fitting.fit import FitConfig, ShapeBasis, Silhouette, fit_sequence, silhouette_distance, surface_subset
 from gsavatar.fitting.keypoints import detect_format, load_joint_map, read_keypoints
 from gsavatar.fitting.triangulate import project_world, triangulate
 from gsavatar.geometry.lbs import pose_joints
 from gsavatar.utils.errors import SchemaError
-from gsavatar.utils.io import atomic_link, atomic_save_npz, atomic_write_json, read_image, read_npz, write_image
+from gsavatar.utils.io import (
+    atomic_link,
+    atomic_save_npz,
+    atomic_write_json,
+    read_image,
+    read_mask,
+    read_npz,
+    write_image,
+)
 from gsavatar.utils.outdir import claim_output_dir
 from gsavatar.utils.progress import progress_bar
 
@@ -77,6 +85,12 @@ class FitBody:
     shape_steps: int = 1500
     """Adam steps of the shape stage on pose + root + shape (after ``--fit.root-steps`` on the root alone); the
     shards' pose fit then takes ``--fit.steps``."""
+    silhouette_points: int = 500
+    """Template surface points the silhouette term poses (farthest-point subset of the vertices); the term is on
+    when ``--fit.w-silhouette`` > 0."""
+    silhouette_size: int = 128
+    """Longer side of the masks' distance maps the silhouette term samples (pixels; distances stay in full-image
+    pixels)."""
     force: bool = False
     """Write into a non-empty folder that is not a gsavatar capture."""
 
@@ -183,6 +197,26 @@ def fit_shape(args: FitBody, cap, model, fmt: str, kp, tri, seen: np.ndarray, ou
     return betas, entry
 
 
+def shard_silhouette(cap, template, names: list[str], frames: range, points: np.ndarray, size: int) -> Silhouette:
+    """The silhouette term's inputs for ``frames``: every camera's mask as a distance map with the longer side
+    ``size`` (same shape for all cameras: the largest image's aspect), the template's ``points`` subset."""
+    sizes = np.array([(cap.cameras[n].width, cap.cameras[n].height) for n in names], np.float64)
+    W, H = sizes.max(0)
+    s = size / max(W, H)
+    wh = (max(1, round(W * s)), max(1, round(H * s)))
+    dist = np.empty((len(frames), len(names), wh[1], wh[0]), np.float32)
+    for i, f in enumerate(frames):
+        for c, n in enumerate(names):
+            dist[i, c] = silhouette_distance(read_mask(cap.mask_path(n, f)), wh)
+    return Silhouette(
+        np.asarray(template.vertices, np.float64)[points],
+        np.asarray(template.skin_indices)[points],
+        np.asarray(template.skin_weights, np.float64)[points],
+        dist,
+        sizes,
+    )
+
+
 def _link_tree(src: Path, dst: Path, how: str) -> int:
     n = 0
     for p in sorted(src.rglob("*")):
@@ -199,6 +233,11 @@ def fit_body(args: FitBody) -> dict:
         raise SchemaError(args.out, "", "is the input capture; fit-body writes a new capture (choose another --out)")
     if args.shard_frames < 1:
         raise ValueError(f"--shard-frames must be >= 1, got {args.shard_frames}")
+    if args.fit.w_silhouette > 0 and min(args.silhouette_points, args.silhouette_size) < 1:
+        raise ValueError(
+            f"--silhouette-points and --silhouette-size must be >= 1 with --fit.w-silhouette > 0, got "
+            f"{args.silhouette_points}, {args.silhouette_size}"
+        )
     fmt = detect_format(args.keypoints) if args.format == "auto" else args.format
     model = None if args.smplx_model is None else _smplx_body(Path(args.smplx_model), cap)
     jm = load_joint_map(fmt, cap.rig, args.joint_map, cap.template)
@@ -215,6 +254,11 @@ def fit_body(args: FitBody) -> dict:
             "",
             f"no detections in any view of any of the {len(frames)} frames (format {fmt}; folders {names[:4]}...)",
         )
+    if args.fit.w_silhouette > 0:  # the silhouette term reads every frame's masks: all must be there before anything
+        for n in names:
+            missing = next((cap.mask_path(n, f) for f in frames if not cap.mask_path(n, f).is_file()), None)
+            if missing is not None:
+                raise SchemaError(missing, "", "mask file not found (--fit.w-silhouette > 0 reads every frame's masks)")
     out = claim_output_dir(Path(args.out), "capture", args.force, register=True)
     t0 = time.perf_counter()
     tri = triangulate(kp, cams, args.fit.min_confidence, args.fit.threshold_px)
@@ -233,6 +277,10 @@ def fit_body(args: FitBody) -> dict:
         template, rig = _shaped_body(model, cap, betas)
         jm = load_joint_map(fmt, rig, args.joint_map, template)
         extra = np.asarray(betas, np.float64).tobytes()
+    use_sil = args.fit.w_silhouette > 0
+    sil_points = surface_subset(template, args.silhouette_points) if use_sil else None
+    if use_sil:
+        extra += f"silhouette {args.silhouette_points} {args.silhouette_size}".encode() + sil_points.tobytes()
     fp = _fingerprint(kp, args, jm, extra)
     shard_dir = out / "fit" / "shards"
     results, reused, t_fit = [], 0, 0.0
@@ -250,7 +298,12 @@ def fit_body(args: FitBody) -> dict:
                     bar.advance()
                     continue
             t1 = time.perf_counter()
-            r = fit_sequence(rig, cams, kp[a:b], jm, tri.points[a:b], tri.inliers[a:b], args.fit)
+            sil = (
+                shard_silhouette(cap, template, names, range(a, b), sil_points, args.silhouette_size)
+                if use_sil
+                else None
+            )
+            r = fit_sequence(rig, cams, kp[a:b], jm, tri.points[a:b], tri.inliers[a:b], args.fit, silhouette=sil)
             t_fit += time.perf_counter() - t1
             atomic_save_npz(path, fingerprint=np.array(fp), **r)
             results.append(r)

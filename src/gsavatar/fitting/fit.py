@@ -11,7 +11,14 @@ objective, summed over a shard of frames:
 - 3D: ``lambda_3d rho_m(|J_tm - X_tm|)`` to the triangulated points (speeds up convergence, robust in metres);
 - pose prior: ``lambda_pose |theta_t|^2`` (the rig's rest pose is the mean; joints no keypoint sees stay near it);
 - joint limits: ``lambda_limit sum relu(|theta| - limit)^2``;
-- temporal smoothness: ``lambda_smooth |J_{t+1} - 2 J_t + J_{t-1}|^2`` (metres) and the same on ``theta``.
+- temporal smoothness: ``lambda_smooth |J_{t+1} - 2 J_t + J_{t-1}|^2`` (metres) and the same on ``theta``;
+- silhouette (optional, :class:`Silhouette`; a third stage of ``silhouette_steps`` after the keypoint fit):
+  ``lambda_sil mean_{c,n} rho_sil(D_tc(pi_c(V_tn)))`` with ``V_tn`` points of the template's surface posed by
+  linear blend skinning and ``D_tc`` the distance (pixels) from the camera's foreground mask, 0 inside: every
+  surface point must project inside every view's silhouette. One-sided on purpose: clothing and hair only widen a
+  real silhouette. It sees what keypoints do not: a hand turned about the forearm pokes its fingers out of the
+  hand's silhouette, a torso twisted by the rig's pass-through hip and
+  spine joints moves its flanks.
 
 Shape, where the body model has it (:class:`ShapeBasis`: rest joints linear in shape coefficients, e.g. SMPL-X's
 ``J_regressor (v_template + shapedirs beta)``): one ``beta`` [B] per sequence joins the unknowns of the second
@@ -33,7 +40,7 @@ import torch
 from torch import Tensor
 
 from gsavatar.fitting.triangulate import camera_arrays
-from gsavatar.geometry.lbs import RigTensors, skinning_transforms
+from gsavatar.geometry.lbs import RigTensors, lbs, skinning_transforms
 from gsavatar.geometry.rotations import matrix_to_axis_angle
 
 
@@ -69,6 +76,110 @@ class FitConfig:
     """Detections below this confidence are ignored."""
     threshold_px: float = 15.0
     """Triangulation inlier threshold, pixels."""
+    w_silhouette: float = 0.0
+    """Weight of the silhouette term (per px^2 of rho, like the reprojection's) when masks are given
+    (:class:`Silhouette`); 0 = keypoints only."""
+    silhouette_steps: int = 200
+    """Adam steps of a third stage on pose + root with the silhouette term added (its own cosine schedule from
+    ``lr``), after the keypoint fit has converged (the term costs ~4x a keypoint step)."""
+    sigma_silhouette_px: float = 4.0
+    """Geman-McClure scale of the silhouette distance, pixels."""
+
+
+class Silhouette(NamedTuple):
+    """What the silhouette term needs: surface points of the template with their skinning, and every frame's
+    masks as distance maps (:func:`silhouette_distance`)."""
+
+    points: np.ndarray
+    """Rest positions of surface points (a subset of the template's vertices), metres.  # [N, 3]"""
+    skin_indices: np.ndarray
+    """Joint per skinning slot.  # [N, K] int"""
+    skin_weights: np.ndarray
+    """Skinning weights.  # [N, K] float"""
+    distance: np.ndarray
+    """Per frame and camera, the distance in full-image pixels from the mask (0 inside), resampled to a common
+    size; NaN maps (no mask) are skipped.  # [F, C, h, w] float32"""
+    sizes: np.ndarray
+    """Full image (width, height) of every camera.  # [C, 2]"""
+
+
+def silhouette_distance(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Distance (in the mask's pixels) of every pixel from the foreground (mask >= 0.5), 0 inside, resampled to
+    ``size`` = (w, h) by area averaging. [H, W] -> [h, w] float32"""
+    import cv2
+
+    outside = (np.asarray(mask) < 0.5).astype(np.uint8)
+    if not (1 - outside).any():  # an empty mask says nothing about where the body is
+        return np.full(size[::-1], np.nan, np.float32)
+    d = cv2.distanceTransform(outside, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return cv2.resize(d, size, interpolation=cv2.INTER_AREA).astype(np.float32)
+
+
+def surface_subset(template, count: int, seed: int = 0) -> np.ndarray:
+    """``count`` vertex indices of ``template`` spread over its surface (farthest-point sampling from a seeded
+    start; all vertices when it has fewer). -> [min(count, V)] int64"""
+    V = np.asarray(template.vertices, np.float64)
+    if count >= len(V):
+        return np.arange(len(V))
+    idx = np.empty(count, np.int64)
+    idx[0] = np.random.default_rng(seed).integers(len(V))
+    d = np.linalg.norm(V - V[idx[0]], axis=1)
+    for i in range(1, count):
+        idx[i] = int(d.argmax())
+        d = np.minimum(d, np.linalg.norm(V - V[idx[i]], axis=1))
+    return idx
+
+
+class SilhouetteTensors(NamedTuple):
+    """:class:`Silhouette` as the tensors the loss reads (made once per fit: :meth:`of`)."""
+
+    points: Tensor  # [N, 3]
+    skin_indices: Tensor  # [N, K] long
+    skin_weights: Tensor  # [N, K]
+    maps: Tensor  # [F * C, 1, h, w] float32, NaN maps zeroed
+    valid: Tensor  # [F, C] bool: the map came from a non-empty mask
+    sizes: Tensor  # [1, C, 1, 2] full image (width, height)
+
+    @classmethod
+    def of(cls, sil: Silhouette, dtype: torch.dtype = torch.float64) -> SilhouetteTensors:
+        dist = torch.as_tensor(sil.distance, dtype=torch.float32)
+        F, C = dist.shape[:2]
+        return cls(
+            torch.as_tensor(sil.points, dtype=dtype),
+            torch.as_tensor(sil.skin_indices).long(),
+            torch.as_tensor(sil.skin_weights, dtype=dtype),
+            torch.nan_to_num(dist).reshape(F * C, 1, *dist.shape[2:]),
+            torch.isfinite(dist.flatten(2)).all(-1),
+            torch.as_tensor(sil.sizes, dtype=dtype)[None, :, None],
+        )
+
+
+def silhouette_loss(
+    rig: RigTensors,
+    sil: Silhouette | SilhouetteTensors,
+    pose: Tensor,
+    root_rotation: Tensor,
+    root_translation: Tensor,
+    cams,
+    sigma: float,
+) -> Tensor:
+    """Mean Geman-McClure silhouette distance of the posed surface points over frames, cameras and points
+    (maps of NaN and points behind a camera skipped). Pixel ``(i, j)`` covers ``[j, j + 1] x [i, i + 1]`` (centres
+    at +0.5, the renderer's convention): grid_sample with ``align_corners=False``. cams: (Ks, Rs, Ts, dists)
+    tensors. [F, P], [F, 3], [F, 3] -> scalar"""
+    dt = pose.dtype
+    st = sil if isinstance(sil, SilhouetteTensors) else SilhouetteTensors.of(sil, dt)
+    T = skinning_transforms(rig, pose, root_rotation, root_translation)  # [F, J, 4, 4]
+    V = lbs(st.points.to(dt), st.skin_indices, st.skin_weights.to(dt), T)  # [F, N, 3]
+    pix, z = _project(V, *cams)  # [F, C, N, 2], [F, C, N]
+    F, C, N = z.shape
+    grid = (2.0 * pix / st.sizes.to(dt) - 1.0).float()  # grid_sample's [-1, 1] over the image
+    d = torch.nn.functional.grid_sample(
+        st.maps, grid.reshape(F * C, N, 1, 2), align_corners=False, padding_mode="border"
+    )
+    d = d.reshape(F, C, N).to(dt)
+    ok = (st.valid[..., None] & (z > 1e-3)).to(dt)  # behind a camera: no silhouette to land in
+    return (ok * geman_mcclure(d * d, sigma)).sum() / ok.sum().clamp_min(1.0)
 
 
 class ShapeBasis(NamedTuple):
@@ -195,6 +306,7 @@ def fit_sequence(
     init: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     progress=None,
     shape: ShapeBasis | None = None,
+    silhouette: Silhouette | None = None,
 ) -> dict[str, np.ndarray]:
     """Fit a shard of frames (module docstring).
 
@@ -202,9 +314,10 @@ def fit_sequence(
     points [F, K, 3], inliers [F, K, C] from :func:`gsavatar.fitting.triangulate.triangulate`. ``init``:
     (pose [F, P], root_rotation [F, 3], root_translation [F, 3]) to start from (default: Kabsch root, rest
     pose). ``progress(i, n)`` is called every step. ``shape``: fit one shape vector for the sequence too (its
-    ``heads`` replace the rig's; the Kabsch start uses the rig's). -> pose, root_rotation, root_translation
-    (float32), ``reprojection_px`` [F] (mean over inlier detections of the fitted joints; NaN without any) and,
-    with ``shape``, ``betas`` [B].
+    ``heads`` replace the rig's; the Kabsch start uses the rig's). ``silhouette``: masks of these frames for the
+    silhouette term (used with ``config.w_silhouette`` > 0 in the second stage). -> pose, root_rotation,
+    root_translation (float32), ``reprojection_px`` [F] (mean over inlier detections of the fitted joints; NaN
+    without any) and, with ``shape``, ``betas`` [B].
     """
     c = config
     dt = torch.float64
@@ -241,10 +354,19 @@ def fit_sequence(
     # 3D residuals in metres against reprojections in pixels: scale the 3D term to pixels with the mean focal length
     f2 = float((Ks[:, 0, 0] * Ks[:, 1, 1]).mean()) / float(Ts[:, 2].abs().mean().clamp_min(0.5)) ** 2
 
+    use_sil = silhouette is not None and c.w_silhouette > 0
+    if use_sil and silhouette.distance.shape[:2] != (F, len(cameras)):
+        raise ValueError(
+            f"silhouette.distance must be [{F}, {len(cameras)}, h, w] (frames, cameras), got "
+            f"{list(silhouette.distance.shape)}"
+        )
+
+    sil_t = SilhouetteTensors.of(silhouette, dt) if use_sil else None
+
     def body() -> RigTensors:
         return rt if betas is None else _shaped_rig(rt, shape, betas)
 
-    def loss(with_pose: bool) -> Tensor:
+    def loss(with_pose: bool, with_sil: bool = False) -> Tensor:
         J = keypoint_points(body(), jt, offsets, pose if with_pose else pose.detach(), rr, tr)  # [F, M, 3]
         pix, z = _project(J, Ks, Rs, Ts, ds)
         sq = ((pix - uv) ** 2).sum(-1)
@@ -263,22 +385,30 @@ def fit_sequence(
                 total = total + c.w_smooth_pose * ((pose[2:] - 2 * pose[1:-1] + pose[:-2]) ** 2).sum(-1).mean()
             if betas is not None:
                 total = total + c.w_shape * (betas**2).sum()
+            if with_sil:
+                total = total + c.w_silhouette * silhouette_loss(
+                    body(), sil_t, pose, rr, tr, (Ks, Rs, Ts, ds), c.sigma_silhouette_px
+                )
         return total
 
-    n = c.root_steps + c.steps
     full = [pose, rr, tr] + ([] if betas is None else [betas])
-    for stage, (params, steps) in enumerate((([rr, tr], c.root_steps), (full, c.steps))):
+    stages = [([rr, tr], c.root_steps, False), (full, c.steps, False)]
+    if use_sil:
+        stages.append(([pose, rr, tr], c.silhouette_steps, True))
+    n, done = sum(st[1] for st in stages), 0
+    for stage, (params, steps, with_sil) in enumerate(stages):
         if steps <= 0:
             continue
         opt = torch.optim.Adam(params, lr=c.lr)
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=c.lr * 0.05)
-        for i in range(steps):
+        for _ in range(steps):
             opt.zero_grad(set_to_none=True)
-            loss(stage == 1).backward()
+            loss(stage >= 1, with_sil).backward()
             opt.step()
             sched.step()
+            done += 1
             if progress is not None:
-                progress(i + (c.root_steps if stage else 0), n)
+                progress(done - 1, n)
     with torch.no_grad():
         J = keypoint_points(body(), jt, offsets, pose, rr, tr)
         pix, _ = _project(J, Ks, Rs, Ts, ds)
