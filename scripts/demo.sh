@@ -5,8 +5,9 @@
 # -> train the appearance predictor -> drive the held-out frames autoregressively (video + metrics)
 # -> one test frame rendered with the encoder's, the predictor's and the mean latent beside the ground truth.
 # STUDY=1 (opt-in, about 1.5 h more on 2 cores) also trains the oracle (ground-truth albedo into the encoder;
-# ORACLE=0 skips it), the baselines, the ablations, the speed-against-error rows (tiny MLPs, a quarter of the
-# Gaussians) and Ours with two more seeds (SEEDS="1 2") on the same schedule, and ends with the results table of
+# ORACLE=0 skips it), the baselines, the ablations (ABLATIONS=0 skips them), the speed-against-error rows (tiny MLPs,
+# a quarter of the Gaussians; SPEED=0 skips them) and Ours with two more seeds (SEEDS="1 2") on the same schedule,
+# and ends with the results table of
 # this capture ($OUT/results.md, .json, grid.png). scripts/study.sh runs it on `small` and `second` and writes
 # docs/results.md. SYNTH picks the synthetic capture's preset (default: PRESET, the training preset).
 # Re-running resumes: finished stages and trainings are skipped.
@@ -66,18 +67,22 @@ if [ "$STUDY" = 1 ]; then
     [ "${ORACLE:-1}" = 1 ] && train run_oracle --texture-source gt
     train run_mmlps --variant mmlps_dagger
     train run_nrfgca --variant nrfgca_dagger
-    train run_wo_local_pose --variant wo_local_pose
-    train run_wo_local_pca --variant wo_local_pca
-    if [ "$PRESET" = small ]; then  # speed against error: the same schedule with (64, 64) anchor MLPs
+    if [ "${ABLATIONS:-1}" = 1 ]; then  # the paper's table 2 ablations (ABLATIONS=0 skips them)
+        train run_wo_local_pose --variant wo_local_pose
+        train run_wo_local_pca --variant wo_local_pca
+    fi
+    if [ "${SPEED:-1}" = 1 ] && [ "$PRESET" = small ]; then  # speed against error: (64, 64) anchor MLPs
         .venv/bin/avatar-train avatar --dataset "$OUT/dataset" --out "$OUT/run_ours_tinymodel" --preset tiny \
             --steps 1200 --correctives-step 200 --checkpoint-every 200
     fi
-    # speed against error: the same capture resampled with a quarter of the Gaussians, the same schedule
-    G=$(.venv/bin/python -c "from gsavatar.data_schema.hierarchy import Hierarchy as H
+    if [ "${SPEED:-1}" = 1 ]; then  # speed against error: a quarter of the Gaussians, the same schedule
+        G=$(.venv/bin/python -c "from gsavatar.data_schema.hierarchy import Hierarchy as H
 print(H.load('$OUT/dataset/sample_points/hierarchy.npz').num_gaussians // 4)")
-    .venv/bin/avatar-prep all --capture "$OUT/capture" --out "$OUT/dataset_fewgauss" --sample.gaussians "$G" \
-        --no-figures
-    .venv/bin/avatar-train avatar --dataset "$OUT/dataset_fewgauss" --out "$OUT/run_ours_fewgauss" --preset "$PRESET"
+        .venv/bin/avatar-prep all --capture "$OUT/capture" --out "$OUT/dataset_fewgauss" --sample.gaussians "$G" \
+            --no-figures
+        .venv/bin/avatar-train avatar --dataset "$OUT/dataset_fewgauss" --out "$OUT/run_ours_fewgauss" \
+            --preset "$PRESET"
+    fi
     seed_runs
     PYTHONPATH=src .venv/bin/python benchmarks/results_table.py --runs "$SYNTH=$OUT" --out "$OUT/results.md"
 fi
