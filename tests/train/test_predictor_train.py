@@ -258,7 +258,9 @@ def test_ensemble_trains_members_on_their_own_windows_and_rebuilds_from_its_chec
         PredictorTrainer(ens, data, [(0, 60)], train_cfg(steps=4, ensemble=3), tmp_path / "x")
 
 
-def test_context_noise_perturbs_only_the_fed_back_inputs():
+def perturbed_unroll_case():
+    """A fitted predictor with perturbed (non-trivial) weights, three 5-frame windows, their GT context and the
+    clean unroll. -> (data, model, rows, seg_start, ctx, clean)"""
     data = synthetic(40)
     m = model()
     prepare_model(m, data, [(0, 40)])
@@ -268,6 +270,11 @@ def test_context_noise_perturbs_only_the_fed_back_inputs():
     rows, seg = WindowSampler([(0, 40)], 5).sample(3, torch.Generator().manual_seed(1))
     ctx = data.latents[rows[:, 0] - 1]
     clean = unroll(m, data, rows, seg, ctx)
+    return data, m, rows, seg, ctx, clean
+
+
+def test_context_noise_perturbs_only_the_fed_back_inputs():
+    data, m, rows, seg, ctx, clean = perturbed_unroll_case()
     assert torch.equal(unroll(m, data, rows, seg, ctx, context_noise=0.0), clean)
     g = lambda: torch.Generator().manual_seed(5)  # noqa: E731
     n1, n2 = (unroll(m, data, rows, seg, ctx, context_noise=0.5, gen=g()) for _ in range(2))
@@ -281,15 +288,7 @@ def test_context_noise_perturbs_only_the_fed_back_inputs():
 
 
 def test_feature_noise_perturbs_the_standardised_pose_features_only():
-    data = synthetic(40)
-    m = model()
-    prepare_model(m, data, [(0, 40)])
-    with torch.no_grad():
-        for p in m.parameters():
-            p.add_(0.05 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
-    rows, seg = WindowSampler([(0, 40)], 5).sample(3, torch.Generator().manual_seed(1))
-    ctx = data.latents[rows[:, 0] - 1]
-    clean = unroll(m, data, rows, seg, ctx)
+    data, m, rows, seg, ctx, clean = perturbed_unroll_case()
     g = lambda: torch.Generator().manual_seed(7)  # noqa: E731
     n1, n2 = (unroll(m, data, rows, seg, ctx, gen=g(), feature_noise=0.5) for _ in range(2))
     assert torch.equal(n1, n2) and (n1 - clean).abs().max() > 1e-4
