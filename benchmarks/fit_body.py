@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -172,7 +173,16 @@ def main() -> None:
         write = write_openpose if a.format == "body25" else write_coco_wholebody
         write(kdir, synthetic_keypoints(P, [cap.cameras[n] for n in names], jm), names, list(range(cap.num_frames)))
     t0 = time.perf_counter()
-    cmd = ["fit-body", "--capture", str(a.capture), "--keypoints", str(kdir), "--out", str(fitted), *a.fit_args.split()]
+    cmd = [
+        "fit-body",
+        "--capture",
+        str(a.capture),
+        "--keypoints",
+        str(kdir),
+        "--out",
+        str(fitted),
+        *shlex.split(a.fit_args),
+    ]
     if prep(cmd) != 0:
         raise SystemExit("fit-body failed")
     wall = time.perf_counter() - t0

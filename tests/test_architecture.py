@@ -45,6 +45,14 @@ ALLOWED: dict[tuple[str, str], str] = {
         "gsavatar.prep.cli",
         "gsavatar.fitting.cli",
     ): "`avatar-prep fit-body` registers the body fit's command; nothing else in prep sees fitting",
+    (
+        "gsavatar.fitting.cli",
+        "gsavatar.importers.smplx_model",
+    ): "`fit-body --smplx-model` reads the user's SMPL-X model file with the importers' reader",
+    (
+        "gsavatar.fitting.cli",
+        "gsavatar.importers.smplx_body",
+    ): "`fit-body --smplx-model` builds the shaped SMPL-X body and rig with the importers' body code",
 }
 """Exceptions by (importer module, imported module), each with its reason."""
 

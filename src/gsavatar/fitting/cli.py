@@ -37,6 +37,8 @@ from gsavatar.fitting.fit import FitConfig, ShapeBasis, Silhouette, fit_sequence
 from gsavatar.fitting.keypoints import detect_format, load_joint_map, read_keypoints
 from gsavatar.fitting.triangulate import project_world, triangulate
 from gsavatar.geometry.lbs import pose_joints
+from gsavatar.importers.smplx_body import shaped_vertices, smplx_rig, smplx_shape_basis
+from gsavatar.importers.smplx_model import SMPLX_JOINT_NAMES, load_smplx_model
 from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.io import (
     atomic_link,
@@ -115,8 +117,6 @@ def _fingerprint(keypoints: np.ndarray, args: FitBody, joint_map, *extra: bytes)
 
 def _smplx_body(path: Path, cap):
     """The SMPL-X model of ``path`` after checking that ``cap``'s body was made from it. -> model"""
-    from gsavatar.importers.smplx_model import SMPLX_JOINT_NAMES, load_smplx_model
-
     model = load_smplx_model(path)
     names = tuple(j.name for j in cap.rig.joints)
     if names != SMPLX_JOINT_NAMES:
@@ -138,8 +138,6 @@ def _smplx_body(path: Path, cap):
 def _shaped_body(model, cap, betas: np.ndarray):
     """The capture's template (faces, UVs, skin weights, face mask kept) with the model's vertices at ``betas``,
     and the SMPL-X rig of that shape. -> (template, rig)"""
-    from gsavatar.importers.smplx_body import shaped_vertices, smplx_rig
-
     verts = shaped_vertices(model, betas)
     t = dataclasses.replace(cap.template, vertices=verts.astype(np.float32))
     return t, smplx_rig(model, model.J_regressor.astype(np.float64) @ verts)
@@ -149,14 +147,7 @@ def fit_shape(args: FitBody, cap, model, fmt: str, kp, tri, seen: np.ndarray, ou
     """One shape for the sequence: ``betas`` fitted with the poses of up to ``args.shape_frames`` seen frames spread
     over it (no temporal terms: the frames are not neighbours); reused from ``out/fit/shape.npz`` when its inputs
     and settings are unchanged. -> (betas [B] float64, report entry)"""
-    from gsavatar.importers.smplx_body import smplx_shape_basis
-
-    if min(args.num_betas, args.shape_frames, args.shape_steps) < 1:
-        raise ValueError(
-            f"--num-betas, --shape-frames and --shape-steps must be >= 1, got {args.num_betas}, {args.shape_frames}, "
-            f"{args.shape_steps}"
-        )
-    heads0, dheads = smplx_shape_basis(model, min(args.num_betas, model.num_betas))
+    heads0, dheads = smplx_shape_basis(model, args.num_betas)
     mean_t, mean_rig = _shaped_body(model, cap, np.zeros(dheads.shape[0]))
     jm = load_joint_map(fmt, mean_rig, args.joint_map, mean_t)
     idx = np.flatnonzero(seen)
@@ -207,7 +198,16 @@ def shard_silhouette(cap, template, names: list[str], frames: range, points: np.
     dist = np.empty((len(frames), len(names), wh[1], wh[0]), np.float32)
     for i, f in enumerate(frames):
         for c, n in enumerate(names):
-            dist[i, c] = silhouette_distance(read_mask(cap.mask_path(n, f)), wh)
+            path = cap.mask_path(n, f)
+            mask = read_mask(path)
+            if mask.shape != (cap.cameras[n].height, cap.cameras[n].width):
+                raise SchemaError(
+                    path,
+                    "",
+                    f"mask is {mask.shape[1]}x{mask.shape[0]}, camera {n} is {cap.cameras[n].width}x"
+                    f"{cap.cameras[n].height}: the silhouette term needs masks at the image size",
+                )
+            dist[i, c] = silhouette_distance(mask, wh)
     return Silhouette(
         np.asarray(template.vertices, np.float64)[points],
         np.asarray(template.skin_indices)[points],
@@ -240,6 +240,18 @@ def fit_body(args: FitBody) -> dict:
         )
     fmt = detect_format(args.keypoints) if args.format == "auto" else args.format
     model = None if args.smplx_model is None else _smplx_body(Path(args.smplx_model), cap)
+    if model is not None:
+        if min(args.num_betas, args.shape_frames, args.shape_steps) < 1:
+            raise ValueError(
+                f"--num-betas, --shape-frames and --shape-steps must be >= 1, got {args.num_betas}, "
+                f"{args.shape_frames}, {args.shape_steps}"
+            )
+        if args.num_betas > model.num_betas:
+            raise SchemaError(
+                Path(args.smplx_model),
+                "shapedirs",
+                f"has {model.num_betas} shape components, --num-betas asks {args.num_betas}",
+            )
     jm = load_joint_map(fmt, cap.rig, args.joint_map, cap.template)
     names = sorted(cap.cameras)
     cams = [cap.cameras[n] for n in names]
@@ -279,8 +291,14 @@ def fit_body(args: FitBody) -> dict:
         extra = np.asarray(betas, np.float64).tobytes()
     use_sil = args.fit.w_silhouette > 0
     sil_points = surface_subset(template, args.silhouette_points) if use_sil else None
-    if use_sil:
-        extra += f"silhouette {args.silhouette_points} {args.silhouette_size}".encode() + sil_points.tobytes()
+    if use_sil:  # the masks are inputs of the fit: regenerated masks refit the shards
+        h = hashlib.sha256(
+            f"silhouette {args.silhouette_points} {args.silhouette_size}".encode() + sil_points.tobytes()
+        )
+        for n in names:
+            for f in frames:
+                h.update(cap.mask_path(n, f).read_bytes())
+        extra += h.digest()
     fp = _fingerprint(kp, args, jm, extra)
     shard_dir = out / "fit" / "shards"
     results, reused, t_fit = [], 0, 0.0

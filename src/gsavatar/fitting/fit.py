@@ -315,11 +315,17 @@ def fit_sequence(
     (pose [F, P], root_rotation [F, 3], root_translation [F, 3]) to start from (default: Kabsch root, rest
     pose). ``progress(i, n)`` is called every step. ``shape``: fit one shape vector for the sequence too (its
     ``heads`` replace the rig's; the Kabsch start uses the rig's). ``silhouette``: masks of these frames for the
-    silhouette term (used with ``config.w_silhouette`` > 0 in the second stage). -> pose, root_rotation,
+    silhouette term (used with ``config.w_silhouette`` > 0 in a third stage on pose and root). -> pose, root_rotation,
     root_translation (float32), ``reprojection_px`` [F] (mean over inlier detections of the fitted joints; NaN
     without any) and, with ``shape``, ``betas`` [B].
     """
     c = config
+    for name in ("sigma_px", "sigma_m", "sigma_silhouette_px"):
+        if not getattr(c, name) > 0:
+            raise ValueError(f"config.{name} must be > 0, got {getattr(c, name)}")
+    for name in ("w_silhouette", "silhouette_steps", "steps", "root_steps"):
+        if not getattr(c, name) >= 0:
+            raise ValueError(f"config.{name} must be >= 0, got {getattr(c, name)}")
     dt = torch.float64
     kp_idx, jt_idx = joint_map.keypoints, joint_map.joints
     F = keypoints.shape[0]

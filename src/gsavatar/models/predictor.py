@@ -616,6 +616,7 @@ class AppearancePredictor(_Streaming, nn.Module):
         x, xj = self.input_features(pose_window, root_rot_window, root_trans_window)
         x = (x - self.feature_mean) * self.feature_scale
         if feature_noise is not None:
+            _check("feature_noise", feature_noise, (B, self.num_slots, self.feature_dim))
             x = x + feature_noise * (self.feature_scale > 0)  # dropped (constant) features stay zero
         lat = (prev_latents - self.latent_mean) / self.latent_scale  # [B, A, L] standardised
         parts = [self.pose_tokens(x) + self.type_embedding[0]]

@@ -85,8 +85,9 @@ class PredictorTrainConfig:
     ema: float = 0.0
     """Decay of an exponential moving average of the weights, updated after every step (0 = none, the paper's). The
     average is what is evaluated, saved as the checkpoint's ``predictor`` and driven (the training weights are kept
-    as ``predictor_train`` for resuming): averaging along the late trajectory removes part of the seed-to-seed
-    scatter of a predictor fit to few frames, at no extra training cost. Measured in docs/train.md."""
+    as ``predictor_train`` for resuming). The average starts at the initial weights (no warm-up correction): keep
+    ``1 / (1 - ema)`` well below ``steps``. Measured worse than no average on `small` (docs/train.md); kept as an
+    opt-in for longer trainings."""
     seed: int = 0
     """Seed of initialisation and window sampling."""
     ensemble: int = 1
