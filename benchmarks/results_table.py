@@ -46,6 +46,7 @@ ROWS = [
     ),
     ("Ours, no history: N_b = 1, no velocities (zero init)", "run_ours", "predictor", "predictor_nohist"),
     ("Ours (predictor, pose init)", "run_ours", "pose_init"),
+    ("Ours, pose only: no window, no fed-back latents", "run_ours", "pose_regression"),
     ("Ours (re-init. 30)", "run_ours", "reinit"),
     ("Ours (re-init. 8)", "run_ours", "reinit8"),
     ("Ours (encoder)", "run_ours", "encoder"),
@@ -382,7 +383,7 @@ def capture_tables(
         run = summaries.get(rdir, {})
         n = run.get("params", {})
         n_params = n.get("avatar", 0) + (
-            n.get("predictor", 0) if mode.startswith(("predictor", "pose_init", "reinit")) else 0
+            n.get("predictor", 0) if mode.startswith(("predictor", "pose_init", "pose_regression", "reinit")) else 0
         )
         m["params"] = n_params or None
         for k in ("seconds", "steps_per_s"):
@@ -491,6 +492,9 @@ def capture_tables(
         nohist = by_label.get("Ours, no history: N_b = 1, no velocities (zero init)", {}).get("psnr_fg")
         if nohist is not None:
             record["predictor_recovery_no_history"] = (nohist - mean) / (enc - mean)
+        pose_only = by_label.get("Ours, pose only: no window, no fed-back latents", {}).get("psnr_fg")
+        if pose_only is not None:
+            record["predictor_recovery_pose_only"] = (pose_only - mean) / (enc - mean)
     capture = _capture_of(runs / "run_ours") if (runs / "run_ours" / "config.json").exists() else None
     fair = capture / "gt" / "fairness.json" if capture is not None else None
     if fair is not None and fair.exists():
@@ -535,10 +539,16 @@ def _summary_lines(record: dict, mean: float | None) -> list[str]:
             f"Predictor recovery (zero init, no texture: its gain over the training-mean latent / the encoder's): "
             f"{record['predictor_recovery']:.0%}"
             + (
-                f"; without history {record['predictor_recovery_no_history']:.0%}."
+                f"; without history {record['predictor_recovery_no_history']:.0%}"
                 if "predictor_recovery_no_history" in record
-                else "."
+                else ""
             )
+            + (
+                f"; from the current pose alone {record['predictor_recovery_pose_only']:.0%}"
+                if "predictor_recovery_pose_only" in record
+                else ""
+            )
+            + "."
         )
     if "history_fairness" in record:
         f = record["history_fairness"]

@@ -221,6 +221,13 @@ def test_streaming_equals_batch_and_render_afterwards(loaded, tiny_run, tiny_cap
         d2.start(motion_inputs(motion, 0))
         lat = torch.stack([d2.step(motion_inputs(motion, t), render=False).latents for t in range(3)])
         assert torch.equal(lat, p2.rollout(f(motion.pose), f(motion.root_rotation), f(motion.root_translation), init))
+    # pose only: the InitialLatentNet of each frame's pose, no state carried between frames
+    p3 = small_predictor(net, trained_init=True)
+    d3 = Driver(tiny_run, DriveConfig(mode="pose_regression"), loaded=loaded, predictor=p3)
+    d3.start(motion_inputs(motion, 2))  # the start frame does not matter: nothing is carried
+    lat = torch.stack([d3.step(motion_inputs(motion, t), render=False).latents for t in range(3)])
+    ref_pose = torch.stack([p3.initial_latents(f(motion.pose)[t : t + 1])[0] for t in range(3)])
+    assert torch.equal(lat, ref_pose) and not torch.equal(lat[0], lat[1])
 
 
 def test_bvh_orbit_driving_and_ramp_up(loaded, tiny_run, tiny_capture, tmp_path):
@@ -301,7 +308,7 @@ def test_drive_modes_come_from_one_table(loaded, tiny_run):
 
     from gsavatar.drive.cli import DriveArgs
 
-    modes = ("predictor", "pose_init", "predictor_encoder_init", "reinit", "train_mean", "encoder")
+    modes = ("predictor", "pose_init", "predictor_encoder_init", "reinit", "train_mean", "pose_regression", "encoder")
     assert tuple(LATENT_SOURCES) == modes and typing.get_args(DriveMode) == modes
     assert typing.get_type_hints(DriveArgs)["drive"] is DriveConfig  # the CLI holds the config, no copy
     assert typing.get_type_hints(DriveConfig)["mode"] == DriveMode  # the CLI's --mode choices
@@ -317,6 +324,7 @@ def test_drive_modes_come_from_one_table(loaded, tiny_run):
         "predictor_encoder_init": (True, True),
         "reinit": (True, True),
         "train_mean": (False, True),
+        "pose_regression": (False, True),
         "encoder": (True, False),
     }
     pred = small_predictor(loaded.net)
@@ -331,8 +339,9 @@ def test_drive_modes_come_from_one_table(loaded, tiny_run):
     )
     e = d.with_mode("encoder")  # a plain constructor call sharing the run and predictor
     assert e.net is d.net and e.predictor is d.predictor and e.config.reinit_every == 3 and e.t == -1
-    with pytest.raises(ValueError, match="trained InitialLatentNet"):
-        d.with_mode("pose_init")  # the small predictor's initial net is untrained
+    for mode in ("pose_init", "pose_regression"):
+        with pytest.raises(ValueError, match="trained InitialLatentNet"):
+            d.with_mode(mode)  # the small predictor's initial net is untrained
     no_pred = Driver(tiny_run, DriveConfig(mode="encoder"), loaded=loaded, predictor=None)
     with pytest.raises(ValueError, match="needs a trained appearance predictor"):
         no_pred.with_mode("predictor")
