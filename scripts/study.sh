@@ -6,7 +6,8 @@
 # states the measured time). Re-running resumes: finished trainings and drives are skipped.
 # CORE=1: the rows the predictor's claims rest on (Ours with its predictors and the no-history ablation, seeds 0-1,
 # MMLPs-dagger, nRFGCA-dagger, and on `small` the two table-2 ablations), without the oracle, the speed-against-error
-# rows, seed 2 and `second`'s ablations: about half the time.
+# rows, seed 2 and `second`'s ablations: about half the time. It writes docs/results.md / .json like the full
+# study, so those then hold only these rows (docs/results_notes.md says which were left out).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
