@@ -164,17 +164,22 @@ class ZeroInit(Predicted, mode="predictor"):
         return zero().to(self.ctx.device) if zero is not None else self.ctx.zeros()
 
 
-class PoseInit(Predicted, mode="pose_init"):
-    """Previous latents of frame 0 = the predictor's pose-conditioned InitialLatentNet (beyond the paper: its
-    future-work item), every frame predicted."""
-
-    ramp_up = True
+class NeedsInitialNet(LatentSource):
+    """A source that reads the predictor's pose-conditioned InitialLatentNet: refuses a predictor without a trained
+    one when it is built."""
 
     def __init__(self, ctx: SourceContext) -> None:
         p = ctx.predictor
         if not hasattr(p, "initial_latents") or not bool(getattr(p, "initial_ready", True)):
             raise ValueError(f"mode {self.mode!r} needs a predictor with a trained InitialLatentNet")
         super().__init__(ctx)
+
+
+class PoseInit(NeedsInitialNet, Predicted, mode="pose_init"):
+    """Previous latents of frame 0 = the predictor's pose-conditioned InitialLatentNet (beyond the paper: its
+    future-work item), every frame predicted."""
+
+    ramp_up = True
 
     def initial_latents(self, x: FrameInputs) -> Tensor:
         return self.ctx.predictor.initial_latents(x.pose[None])[0]
@@ -223,18 +228,12 @@ class TrainMean(LatentSource, mode="train_mean"):
         return self.ctx.predictor.latent_mean.to(self.ctx.device)
 
 
-class PoseRegression(LatentSource, mode="pose_regression"):
+class PoseRegression(NeedsInitialNet, mode="pose_regression"):
     """Every frame's latents from the current pose alone: the predictor's InitialLatentNet applied frame by frame,
     with no pose window and no fed-back latents. The ablation without any memory of the motion (the no-history
     predictor, N_b = 1, still carries the past in the latents it feeds back)."""
 
     needs_predictor = True
-
-    def __init__(self, ctx: SourceContext) -> None:
-        p = ctx.predictor
-        if not hasattr(p, "initial_latents") or not bool(getattr(p, "initial_ready", True)):
-            raise ValueError(f"mode {self.mode!r} needs a predictor with a trained InitialLatentNet")
-        super().__init__(ctx)
 
     def next(self, x: FrameInputs, t: int) -> Tensor:
         return self.ctx.predictor.initial_latents(x.pose[None])[0].to(self.ctx.device)

@@ -217,6 +217,18 @@ def shard_silhouette(cap, template, names: list[str], frames: range, points: np.
     )
 
 
+def _masks_digest(cap, names: list[str], frames: list[int]) -> bytes:
+    """SHA-256 of every camera's mask file of every frame; SchemaError naming the first one missing."""
+    h = hashlib.sha256()
+    for n in names:
+        for f in frames:
+            path = cap.mask_path(n, f)
+            if not path.is_file():
+                raise SchemaError(path, "", "mask file not found (--fit.w-silhouette > 0 reads every frame's masks)")
+            h.update(path.read_bytes())
+    return h.digest()
+
+
 def _link_tree(src: Path, dst: Path, how: str) -> int:
     n = 0
     for p in sorted(src.rglob("*")):
@@ -266,11 +278,9 @@ def fit_body(args: FitBody) -> dict:
             "",
             f"no detections in any view of any of the {len(frames)} frames (format {fmt}; folders {names[:4]}...)",
         )
-    if args.fit.w_silhouette > 0:  # the silhouette term reads every frame's masks: all must be there before anything
-        for n in names:
-            missing = next((cap.mask_path(n, f) for f in frames if not cap.mask_path(n, f).is_file()), None)
-            if missing is not None:
-                raise SchemaError(missing, "", "mask file not found (--fit.w-silhouette > 0 reads every frame's masks)")
+    # the silhouette term reads every frame's masks: all must be there before anything is written, and their
+    # contents are inputs of the fit (regenerated masks refit the shards)
+    masks_digest = _masks_digest(cap, names, frames) if args.fit.w_silhouette > 0 else b""
     out = claim_output_dir(Path(args.out), "capture", args.force, register=True)
     t0 = time.perf_counter()
     tri = triangulate(kp, cams, args.fit.min_confidence, args.fit.threshold_px)
@@ -291,14 +301,9 @@ def fit_body(args: FitBody) -> dict:
         extra = np.asarray(betas, np.float64).tobytes()
     use_sil = args.fit.w_silhouette > 0
     sil_points = surface_subset(template, args.silhouette_points) if use_sil else None
-    if use_sil:  # the masks are inputs of the fit: regenerated masks refit the shards
-        h = hashlib.sha256(
-            f"silhouette {args.silhouette_points} {args.silhouette_size}".encode() + sil_points.tobytes()
-        )
-        for n in names:
-            for f in frames:
-                h.update(cap.mask_path(n, f).read_bytes())
-        extra += h.digest()
+    if use_sil:
+        extra += f"silhouette {args.silhouette_points} {args.silhouette_size}".encode() + sil_points.tobytes()
+        extra += masks_digest
     fp = _fingerprint(kp, args, jm, extra)
     shard_dir = out / "fit" / "shards"
     results, reused, t_fit = [], 0, 0.0
