@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gsavatar.synth.appearance import AppearanceConfig, AppearanceModel
-from gsavatar.synth.fairness import pooled_r2, predictability, stack_history
+from gsavatar.synth.fairness import history_features, pooled_r2, predictability, stack_history
 from gsavatar.synth.motion_effects import (
     MotionEffect,
     accumulator_state,
@@ -156,6 +156,27 @@ def test_fairness_check_known_answers():
     r = predictability(feats, now[:, None], train, test)
     assert r["history"] > 0.9 and r["pose_only"] > 0.9
     assert pooled_r2(np.zeros((5, 1)), np.arange(5.0)[:, None]) == pytest.approx(1 - 30 / 10)
+
+
+def test_fairness_history_sees_the_motion_of_a_smooth_pose():
+    """A state that is a smooth pose signal's velocity: recoverable from the history, not from the pose alone."""
+    rng = np.random.default_rng(2)
+    F = 600
+    kernel = np.hanning(15)
+    smooth = np.stack([np.convolve(rng.normal(0, 1, F + 14), kernel, "valid") for _ in range(4)], 1)
+    feats = smooth / smooth.std(0)  # stationary, and neighbouring frames nearly equal
+    vel = np.diff(feats[:, 0], prepend=feats[0, 0])
+    r = predictability(feats, vel[:, None], np.arange(450), np.arange(450, F), components=4)
+    assert r["history"] > 0.95 and r["pose_only"] < 0.3
+
+
+def test_history_features_are_the_stacked_frames_reparameterised():
+    x = np.random.default_rng(3).normal(size=(12, 3))
+    h = history_features(x, 4).reshape(12, 4, 3)
+    s = stack_history(x, 4).reshape(12, 4, 3)  # oldest first
+    assert np.allclose(h[:, 0], s[:, -1])
+    rebuilt = s[:, -1:] - np.cumsum(h[:, 1:], 1)  # x_{t-k} = x_t - sum of the k newest changes
+    assert np.allclose(rebuilt, s[:, -2::-1])
 
 
 def test_presets_round_trip_their_motion_effects():
