@@ -124,7 +124,25 @@ def test_openpose_and_coco_wholebody_readers(tmp_path):
     p.write_text(
         json.dumps({"people": [{"pose_keypoints_2d": weak.tolist()}, {"pose_keypoints_2d": a.ravel().tolist()}]})
     )
-    np.testing.assert_allclose(read_keypoint_file(p, "body25"), a)  # the more confident person
+    got = read_keypoint_file(p, "body25")  # the more confident person; no hand / face arrays: not detected
+    np.testing.assert_allclose(got[:25], a)
+    assert got.shape == (137, 3) and not got[25:].any()
+    hl, hr, face = (np.random.default_rng(k).uniform(0, 1, (n, 3)) for k, n in ((1, 21), (2, 21), (3, 70)))
+    p.write_text(
+        json.dumps(
+            {
+                "people": [
+                    {
+                        "pose_keypoints_2d": a.ravel().tolist(),
+                        "hand_left_keypoints_2d": hl.ravel().tolist(),
+                        "hand_right_keypoints_2d": hr.ravel().tolist(),
+                        "face_keypoints_2d": face.ravel().tolist(),
+                    }
+                ]
+            }
+        )
+    )
+    np.testing.assert_allclose(read_keypoint_file(p, "body25"), np.concatenate([a, hl, hr, face]))
     xy = np.random.default_rng(0).uniform(0, 100, (133, 2))
     sc = np.linspace(0.1, 1, 133)
     q = tmp_path / "c.json"
@@ -143,7 +161,7 @@ def test_openpose_and_coco_wholebody_readers(tmp_path):
     assert read_keypoint_file(tmp_path / "e.json", "body25") is None
 
 
-@pytest.mark.parametrize("kind", ["count", "nan", "json", "negative", "not_openpose", "camera"])
+@pytest.mark.parametrize("kind", ["count", "hand_count", "nan", "json", "negative", "not_openpose", "camera"])
 def test_bad_keypoint_files_name_the_file(tmp_path, kind):
     root = tmp_path / "kp"
     (root / "cam00").mkdir(parents=True)
@@ -152,6 +170,8 @@ def test_bad_keypoint_files_name_the_file(tmp_path, kind):
     body = {"people": [{"pose_keypoints_2d": good.ravel().tolist()}]}
     if kind == "count":
         body["people"][0]["pose_keypoints_2d"] = good[:20].ravel().tolist()
+    elif kind == "hand_count":
+        body["people"][0]["hand_left_keypoints_2d"] = good[:20].ravel().tolist()
     elif kind == "nan":
         f.write_text(json.dumps(body).replace("0.5", "NaN", 1))
     elif kind == "negative":
@@ -202,7 +222,7 @@ def run_fit(capture: Path, kp_dir: Path, out: Path, *extra: str) -> int:
             "--out",
             str(out),
             "--fit.steps",
-            "300",
+            "600",
             "--fit.root-steps",
             "60",
             "--shard-frames",
@@ -234,7 +254,9 @@ def test_fit_body_writes_a_capture_that_prep_takes_and_resumes(tiny_capture, tin
     m = fitted.motion
     Jf = pose_joint_positions(fitted.rig, m.pose, m.root_rotation, m.root_translation)
     jm = load_joint_map("body25", cap.rig)
-    assert 1000 * np.linalg.norm(Jf[:, jm.joints] - J[:, jm.joints], axis=-1).mean() < 40.0
+    body = jm.joints[jm.keypoints < 25]  # the body joints (the hands' finger bases are fitted too, not scored here)
+    err = 1000 * np.linalg.norm(Jf[:, body] - J[:, body], axis=-1).mean()
+    assert err < 40.0
     before = {p: p.stat().st_mtime_ns for p in (out / "fit" / "shards").iterdir()}
     assert run_fit(tiny_capture, kdir, out) == 0  # resumes: every shard reused
     assert json.loads((out / "fit" / "report.json").read_text())["shards"]["reused"] == len(before)
@@ -485,3 +507,17 @@ def test_fit_body_silhouette_refuses_a_missing_mask_before_writing(tiny_capture,
     assert str(gone) in capsys.readouterr().err and not out.exists()
     assert run_fit(tiny_capture, kdir, out, "--fit.w-silhouette", "1", "--silhouette-points", "0") == 2
     assert "--silhouette-points" in capsys.readouterr().err and not out.exists()
+
+
+def test_body25_maps_may_list_the_body_only_and_hands_index_after_it(tmp_path):
+    rig, jmap = arm_setup()
+    base = json.loads(write_map(tmp_path, jmap).read_text())
+    assert len(base["names"]) == 137 and base["names"][25] == "hand_left_0" and base["names"][67] == "face_0"
+    short = tmp_path / "short.json"
+    short.write_text(json.dumps({**base, "names": base["names"][:25]}))  # a map of the 25 body keypoints
+    jm = load_joint_map("body25", rig, short)
+    assert jm.names == tuple(jmap) and list(jm.keypoints) == [base["names"].index(n) for n in jmap]
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({**base, "names": base["names"][:30]}))
+    with pytest.raises(SchemaError, match="25 or 137"):
+        load_joint_map("body25", rig, bad)

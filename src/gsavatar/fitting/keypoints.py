@@ -4,7 +4,10 @@ Layout: ``DIR/<camera>/<frame>...json``, one file per camera and capture frame; 
 leading integer of the file name (OpenPose writes ``<image stem>_keypoints.json``, e.g.
 ``00000012_keypoints.json``; ``000012.json`` is read as well). Formats:
 
-- ``body25``: OpenPose ``{"people": [{"pose_keypoints_2d": [x, y, c] * 25, ...}]}``;
+- ``body25``: OpenPose ``{"people": [{"pose_keypoints_2d": [x, y, c] * 25, ...}]}``, with the
+  ``hand_left_keypoints_2d`` / ``hand_right_keypoints_2d`` (21 each) and ``face_keypoints_2d`` (70) arrays where
+  OpenPose wrote them (``--hand``, ``--face``): keypoints 0-24 body, 25-45 left hand, 46-66 right hand, 67-136
+  face, absent parts read as not detected;
 - ``coco_wholebody``: 133 keypoints, as MMPose / Sapiens-style tools write them: a list of instances (or
   ``{"instances": [...]}``, ``{"instance_info": [{"instances": [...]}]}``) with ``"keypoints": [[x, y], ...]``
   and ``"keypoint_scores": [...]``, or COCO ``{"annotations": [{"keypoints": [x, y, v] * 17, "foot_kpts",
@@ -32,8 +35,17 @@ import numpy as np
 from gsavatar.utils.errors import SchemaError
 
 KeypointFormat = Literal["body25", "coco_wholebody"]
-FORMATS: dict[str, int] = {"body25": 25, "coco_wholebody": 133}
-"""Keypoints per person of each format."""
+BODY25_PARTS = (
+    ("pose_keypoints_2d", 25),
+    ("hand_left_keypoints_2d", 21),
+    ("hand_right_keypoints_2d", 21),
+    ("face_keypoints_2d", 70),
+)
+"""An OpenPose person's arrays in the order :func:`read_keypoints` concatenates them (only the first is required)."""
+FORMATS: dict[str, int] = {"body25": sum(n for _, n in BODY25_PARTS), "coco_wholebody": 133}
+"""Keypoints per person of each format (body25: body, hands and face, 137)."""
+MAP_SIZES: dict[str, tuple[int, ...]] = {"body25": (25, FORMATS["body25"]), "coco_wholebody": (133,)}
+"""Lengths a joint map's ``names`` may have: a body25 map may list the 25 body keypoints only."""
 _COCO_PARTS = (("keypoints", 17), ("foot_kpts", 6), ("face_kpts", 68), ("lefthand_kpts", 21), ("righthand_kpts", 21))
 
 
@@ -106,11 +118,12 @@ def load_joint_map(fmt: str, rig, path: str | Path | None = None, template=None)
     where = src or f"gsavatar/fitting/maps/{fmt}.json"
     if not isinstance(obj, dict) or not isinstance(obj.get("names"), list) or not isinstance(obj.get("joints"), dict):
         raise SchemaError(where, "", "needs 'names' (list) and 'joints' (object: keypoint -> [rig joints])")
-    if obj.get("format", fmt) != fmt or len(obj["names"]) != FORMATS[fmt]:
+    if obj.get("format", fmt) != fmt or len(obj["names"]) not in MAP_SIZES[fmt]:
         raise SchemaError(
             where,
             "names",
-            f"is a map for {obj.get('format')!r} with {len(obj['names'])} keypoints; {fmt} has {FORMATS[fmt]}",
+            f"is a map for {obj.get('format')!r} with {len(obj['names'])} keypoints; a {fmt} map lists "
+            f"{' or '.join(map(str, MAP_SIZES[fmt]))}",
         )
     rig_names = [j.name for j in rig.joints]
     kp, jt, names, offs = [], [], [], []
@@ -162,10 +175,17 @@ def _finite_array(v, file: Path, fld: str, shape_last: int) -> np.ndarray:
 def _person_body25(p: dict, file: Path, i: int) -> np.ndarray:
     if "pose_keypoints_2d" not in p:
         raise SchemaError(file, f"people[{i}]", "has no 'pose_keypoints_2d'")
-    a = _finite_array(p["pose_keypoints_2d"], file, f"people[{i}].pose_keypoints_2d", 3)
-    if len(a) != 25:
-        raise SchemaError(file, f"people[{i}].pose_keypoints_2d", f"has {len(a)} keypoints, BODY_25 has 25")
-    return a
+    parts = []
+    for key, n in BODY25_PARTS:
+        v = p.get(key)
+        if v is None or (isinstance(v, list) and not v):  # OpenPose run without --hand / --face
+            parts.append(np.zeros((n, 3)))
+            continue
+        a = _finite_array(v, file, f"people[{i}].{key}", 3)
+        if a.ndim != 2 or len(a) != n:
+            raise SchemaError(file, f"people[{i}].{key}", f"has {len(a)} keypoints, OpenPose writes {n}")
+        parts.append(a)
+    return np.concatenate(parts)
 
 
 def _person_coco(p: dict, file: Path, i: int) -> np.ndarray:

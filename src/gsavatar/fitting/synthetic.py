@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gsavatar.fitting.keypoints import FORMATS, JointMap
+from gsavatar.fitting.keypoints import BODY25_PARTS, FORMATS, JointMap
 from gsavatar.fitting.triangulate import project_world
 
 
@@ -46,16 +46,22 @@ def synthetic_keypoints(
 
 
 def write_openpose(root: str | Path, keypoints: np.ndarray, cameras: list[str], frames: list[int]) -> None:
-    """keypoints [F, C, 25, 3] -> ``root/<camera>/<frame:08d>_keypoints.json`` (OpenPose BODY_25 files; a
-    view without any detection gets ``"people": []``)."""
+    """keypoints [F, C, 137, 3] (or [F, C, 25, 3]: body only) -> ``root/<camera>/<frame:08d>_keypoints.json``
+    (OpenPose BODY_25 files; the hand and face arrays are written when any of their keypoints is detected, as
+    OpenPose writes them with ``--hand`` / ``--face``; a view without any detection gets ``"people": []``)."""
     root = Path(root)
     for c, cam in enumerate(cameras):
         (root / cam).mkdir(parents=True, exist_ok=True)
         for i, f in enumerate(frames):
             a = keypoints[i, c]
-            people = (
-                [] if not (a[:, 2] > 0).any() else [{"person_id": [-1], "pose_keypoints_2d": a.reshape(-1).tolist()}]
-            )
+            person: dict = {"person_id": [-1]}
+            start = 0
+            for key, n in BODY25_PARTS:
+                part = a[start : start + n]
+                start += n
+                if key == "pose_keypoints_2d" or (len(part) == n and (part[:, 2] > 0).any()):
+                    person[key] = part.reshape(-1).tolist()
+            people = [] if not (a[:, 2] > 0).any() else [person]
             (root / cam / f"{f:08d}_keypoints.json").write_text(json.dumps({"version": 1.3, "people": people}))
 
 
