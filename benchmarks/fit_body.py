@@ -65,7 +65,14 @@ def errors(cap, fitted, jm) -> dict:
     V0 = lbs(V, si, sw, d(T0[sub])).numpy()
     V1 = lbs(V, si, sw, d(T1[sub])).numpy()
     ev = 1000 * np.linalg.norm(V1 - V0, axis=-1)
+    dominant = si.numpy()[np.arange(len(si)), sw.numpy().argmax(1)]  # each vertex's region: its main joint
+    by_joint = {
+        cap.rig.joints[j].name: round(float(ev[:, dominant == j].mean()), 1)
+        for j in np.unique(dominant)
+        if (dominant == j).sum() >= 20
+    }
     return {
+        "vertex_error_by_joint_mm": dict(sorted(by_joint.items(), key=lambda kv: -kv[1])),
         "vertex_error_mm": float(ev.mean()),
         "vertex_error_p95_mm": float(np.percentile(ev, 95)),
         "mpjpe_mapped_mm": float(e[:, jm.joints].mean()),
@@ -155,6 +162,8 @@ def main() -> None:
     ap.add_argument("--fit-args", default="", help="extra fit-body flags, e.g. '--fit.w-silhouette 1'")
     ap.add_argument("--fitted-name", default="fitted", help="folder of the fitted capture under --work")
     ap.add_argument("--preset", default="tiny", help="avatar-train preset of --train's two avatars")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the keypoints' noise, outliers and drops")
+    ap.add_argument("--joint-map", type=Path, default=None, help="a keypoint -> joint map file (keypoints and fit)")
     a = ap.parse_args()
 
     from gsavatar.data_schema import load_capture
@@ -164,14 +173,15 @@ def main() -> None:
     from gsavatar.prep.cli import main as prep
 
     cap = load_capture(a.capture)
-    jm = load_joint_map(a.format, cap.rig, template=cap.template)
+    jm = load_joint_map(a.format, cap.rig, a.joint_map, template=cap.template)
     names = sorted(cap.cameras)
     m = cap.motion
     kdir, fitted = a.work / "keypoints", a.work / a.fitted_name
     if not kdir.exists():
         P = posed_keypoints(cap.rig, jm, m.pose, m.root_rotation, m.root_translation)
         write = write_openpose if a.format == "body25" else write_coco_wholebody
-        write(kdir, synthetic_keypoints(P, [cap.cameras[n] for n in names], jm), names, list(range(cap.num_frames)))
+        kp = synthetic_keypoints(P, [cap.cameras[n] for n in names], jm, seed=a.seed)
+        write(kdir, kp, names, list(range(cap.num_frames)))
     t0 = time.perf_counter()
     cmd = [
         "fit-body",
@@ -181,6 +191,7 @@ def main() -> None:
         str(kdir),
         "--out",
         str(fitted),
+        *(["--joint-map", str(a.joint_map)] if a.joint_map else []),
         *shlex.split(a.fit_args),
     ]
     if prep(cmd) != 0:
