@@ -522,3 +522,15 @@ def test_body25_maps_may_list_the_body_only_and_hands_index_after_it(tmp_path):
     bad.write_text(json.dumps({**base, "names": base["names"][:30]}))
     with pytest.raises(SchemaError, match="25 or 137"):
         load_joint_map("body25", rig, bad)
+
+
+def test_the_documented_hand_map_loads_on_the_synthetic_body(tiny_capture):
+    """docs/maps/body25_hands.json (the opt-in hand points of docs/fit_body.md) maps all its keypoints on anny."""
+    from gsavatar.data_schema import load_capture
+
+    cap = load_capture(tiny_capture)
+    path = Path(__file__).resolve().parents[2] / "docs" / "maps" / "body25_hands.json"
+    jm = load_joint_map("body25", cap.rig, path, template=cap.template)
+    default = load_joint_map("body25", cap.rig, template=cap.template)
+    assert len(jm.names) == len(default.names) + 6 and {"hand_left_9", "hand_right_4"} <= set(jm.names)
+    assert set(jm.keypoints[len(default.names) :]) <= set(range(25, 67))  # from the hand arrays
