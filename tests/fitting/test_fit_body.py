@@ -534,3 +534,79 @@ def test_the_documented_hand_map_loads_on_the_synthetic_body(tiny_capture):
     default = load_joint_map("body25", cap.rig, template=cap.template)
     assert len(jm.names) == len(default.names) + 6 and {"hand_left_9", "hand_right_4"} <= set(jm.names)
     assert set(jm.keypoints[len(default.names) :]) <= set(range(25, 67))  # from the hand arrays
+
+
+def test_pose_prior_mean_decides_what_no_keypoint_sees(tmp_path):
+    """LeftFinger's own rotation moves no mapped point: the fit keeps it at the prior's centre, which is the rest
+    pose by default and the true value when the prior's mean carries it; the seen joints fit either way."""
+    import torch
+
+    from gsavatar.geometry.lbs import pose_joints
+
+    rig, jmap = arm_setup()
+    jm = load_joint_map("body25", rig, write_map(tmp_path, jmap))
+    cams = ring_cameras(6)
+    F = 3
+    names = [p.name for p in rig.params]
+    off = lambda n: sum(p.size for p in rig.params[: names.index(n)])  # noqa: E731
+    pose = np.zeros((F, rig.pose_dim))
+    pose[:, off("LeftArm.ry")] = 0.3
+    pose[:, off("LeftForeArm.r") + 2] = 0.6
+    pose[:, off("LeftFinger.rx")] = 0.7  # unobserved
+    rr, tr = np.zeros((F, 3)), np.tile([0.0, 0.9, 0.0], (F, 1))
+    J = pose_joints(rig, *(torch.as_tensor(a, dtype=torch.float64) for a in (pose, rr, tr))).numpy()
+    kp = synthetic_keypoints(J[:, jm.joints], cams, jm, noise_px=0.0, outlier_fraction=0.0, drop_fraction=0.0)
+    tri = triangulate(kp, cams)
+    mu = np.zeros(rig.pose_dim)
+    mu[off("LeftFinger.rx")] = 0.7
+    for prior, want in ((None, 0.0), (mu, 0.7)):
+        res = fit_sequence(rig, cams, kp, jm, tri.points, tri.inliers, FitConfig(w_pose=1e-4), prior_mean=prior)
+        assert np.allclose(res["pose"][:, off("LeftFinger.rx")], want, atol=1e-3)
+        Jf = pose_joints(
+            rig, *(torch.as_tensor(res[k], dtype=torch.float64) for k in ("pose", "root_rotation", "root_translation"))
+        ).numpy()
+        assert 1000 * np.linalg.norm(Jf[:, jm.joints] - J[:, jm.joints], axis=-1).mean() < 3.0
+    with pytest.raises(ValueError, match="prior_mean"):
+        fit_sequence(rig, cams, kp, jm, tri.points, tri.inliers, FitConfig(steps=1), prior_mean=mu[:-1])
+
+
+@pytest.mark.parametrize("kind", ["missing", "suffix", "shape", "nan", "no_pose"])
+def test_bad_pose_prior_files_name_the_file(tmp_path, kind):
+    from gsavatar.fitting.prior import pose_prior_mean
+
+    rig, _ = arm_setup()
+    p = tmp_path / ("prior.txt" if kind == "suffix" else "prior.npz")
+    pose = np.zeros((5, rig.pose_dim))
+    if kind == "shape":
+        pose = pose[:, :-1]
+    elif kind == "nan":
+        pose[2, 1] = np.nan
+    if kind == "no_pose":
+        np.savez(p, motion=pose)
+    elif kind != "missing":
+        np.savez(p, pose=pose) if kind != "suffix" else p.write_text("0")
+    with pytest.raises(SchemaError) as e:
+        pose_prior_mean([p], rig)
+    assert p.name in str(e.value)
+    q = tmp_path / "ok.npz"
+    np.savez(q, pose=np.full((4, rig.pose_dim), 0.25))
+    mean, entry = pose_prior_mean([q, q], rig)
+    assert np.allclose(mean, 0.25) and entry["frames"] == 8
+
+
+def test_fit_body_pose_prior_from_bvh_is_reported_and_refits(tiny_capture, tiny_fit_inputs, tmp_path, capsys):
+    """--pose-prior with a real CMU BVH (retargeted onto the capture's rig): reported, and part of the shards'
+    fingerprint (the same keypoints without it refit every shard); a bad prior file writes nothing."""
+    cap, names, _, kp = tiny_fit_inputs
+    kdir = tmp_path / "kp"
+    write_openpose(kdir, kp, names, list(range(cap.num_frames)))
+    bvh = "/usr/share/assimp/models/BVH/01_03.bvh"
+    out = tmp_path / "fitted"
+    assert run_fit(tiny_capture, kdir, out, "--pose-prior", bvh) == 0
+    rep = json.loads((out / "fit" / "report.json").read_text())
+    assert rep["pose_prior"]["files"] == [bvh] and rep["pose_prior"]["frames"] > 100
+    assert run_fit(tiny_capture, kdir, out) == 0
+    assert json.loads((out / "fit" / "report.json").read_text())["shards"]["reused"] == 0
+    bad = tmp_path / "bad"
+    assert run_fit(tiny_capture, kdir, bad, "--pose-prior", str(tmp_path / "none.bvh")) != 0
+    assert "none.bvh" in capsys.readouterr().err and not bad.exists()

@@ -35,6 +35,7 @@ from gsavatar.data_schema.capture import Motion, write_capture_metadata
 from gsavatar.data_schema.template import save_template
 from gsavatar.fitting.fit import FitConfig, ShapeBasis, Silhouette, fit_sequence, silhouette_distance, surface_subset
 from gsavatar.fitting.keypoints import detect_format, load_joint_map, read_keypoints
+from gsavatar.fitting.prior import pose_prior_mean
 from gsavatar.fitting.triangulate import project_world, triangulate
 from gsavatar.geometry.lbs import pose_joints
 from gsavatar.importers.smplx_body import shaped_vertices, smplx_rig, smplx_shape_basis
@@ -80,6 +81,11 @@ class FitBody:
     """The SMPL-X model file (``SMPLX_NEUTRAL.npz``) the capture's body was imported from: fit its shape too (one
     ``betas`` per sequence) and write the reshaped template. Default: keep the capture's template (the anny body of
     the synthetic captures has no linear shape space)."""
+    pose_prior: tuple[Path, ...] = ()
+    """Motion capture of the same skeleton whose mean pose centres the pose prior and starts the fit: BVH files
+    (retargeted onto the capture's rig) or ``.npz`` files with ``pose`` [F, P] (e.g. another capture's
+    ``motion.npz``). Default: the rest pose. Decides what no keypoint sees (limb twist, fingers, the split of a
+    torso rotation between the root and pass-through joints; docs/fit_body.md)."""
     num_betas: int = 10
     """Shape coefficients fitted with ``--smplx-model``."""
     shape_frames: int = 60
@@ -143,7 +149,9 @@ def _shaped_body(model, cap, betas: np.ndarray):
     return t, smplx_rig(model, model.J_regressor.astype(np.float64) @ verts)
 
 
-def fit_shape(args: FitBody, cap, model, fmt: str, kp, tri, seen: np.ndarray, out: Path) -> tuple[np.ndarray, dict]:
+def fit_shape(
+    args: FitBody, cap, model, fmt: str, kp, tri, seen: np.ndarray, out: Path, prior_mean: np.ndarray | None = None
+) -> tuple[np.ndarray, dict]:
     """One shape for the sequence: ``betas`` fitted with the poses of up to ``args.shape_frames`` seen frames spread
     over it (no temporal terms: the frames are not neighbours); reused from ``out/fit/shape.npz`` when its inputs
     and settings are unchanged. -> (betas [B] float64, report entry)"""
@@ -154,7 +162,14 @@ def fit_shape(args: FitBody, cap, model, fmt: str, kp, tri, seen: np.ndarray, ou
     sel = idx[np.unique(np.linspace(0, len(idx) - 1, min(args.shape_frames, len(idx))).round().astype(int))]
     model_sha = hashlib.sha256(Path(model.path).read_bytes()).hexdigest()
     fp = _fingerprint(
-        kp[sel], args, jm, b"shape", sel.tobytes(), f"{dheads.shape[0]} {args.shape_steps}".encode(), model_sha.encode()
+        kp[sel],
+        args,
+        jm,
+        b"shape",
+        sel.tobytes(),
+        f"{dheads.shape[0]} {args.shape_steps}".encode(),
+        model_sha.encode(),
+        b"" if prior_mean is None else np.asarray(prior_mean, np.float64).tobytes(),
     )
     path = out / "fit" / "shape.npz"
     t0 = time.perf_counter()
@@ -175,6 +190,7 @@ def fit_shape(args: FitBody, cap, model, fmt: str, kp, tri, seen: np.ndarray, ou
                 cfg,
                 progress=lambda i, n: bar.advance(),
                 shape=ShapeBasis(heads0, dheads),
+                prior_mean=prior_mean,
             )
         betas, reused = r["betas"].astype(np.float64), False
         atomic_save_npz(path, fingerprint=np.array(fp), betas=betas, frames=sel)
@@ -265,6 +281,7 @@ def fit_body(args: FitBody) -> dict:
                 f"has {model.num_betas} shape components, --num-betas asks {args.num_betas}",
             )
     jm = load_joint_map(fmt, cap.rig, args.joint_map, cap.template)
+    prior_mean, prior_entry = pose_prior_mean(args.pose_prior, cap.rig) if args.pose_prior else (None, None)
     names = sorted(cap.cameras)
     cams = [cap.cameras[n] for n in names]
     frames = list(range(cap.num_frames))
@@ -295,7 +312,7 @@ def fit_body(args: FitBody) -> dict:
         )
     template, rig, shape_entry, extra = cap.template, cap.rig, None, b""
     if model is not None:
-        betas, shape_entry = fit_shape(args, cap, model, fmt, kp, tri, seen, out)
+        betas, shape_entry = fit_shape(args, cap, model, fmt, kp, tri, seen, out, prior_mean)
         template, rig = _shaped_body(model, cap, betas)
         jm = load_joint_map(fmt, rig, args.joint_map, template)
         extra = np.asarray(betas, np.float64).tobytes()
@@ -304,6 +321,8 @@ def fit_body(args: FitBody) -> dict:
     if use_sil:
         extra += f"silhouette {args.silhouette_points} {args.silhouette_size}".encode() + sil_points.tobytes()
         extra += masks_digest
+    if prior_mean is not None:
+        extra += b"pose prior" + prior_mean.tobytes()
     fp = _fingerprint(kp, args, jm, extra)
     shard_dir = out / "fit" / "shards"
     results, reused, t_fit = [], 0, 0.0
@@ -326,7 +345,17 @@ def fit_body(args: FitBody) -> dict:
                 if use_sil
                 else None
             )
-            r = fit_sequence(rig, cams, kp[a:b], jm, tri.points[a:b], tri.inliers[a:b], args.fit, silhouette=sil)
+            r = fit_sequence(
+                rig,
+                cams,
+                kp[a:b],
+                jm,
+                tri.points[a:b],
+                tri.inliers[a:b],
+                args.fit,
+                silhouette=sil,
+                prior_mean=prior_mean,
+            )
             t_fit += time.perf_counter() - t1
             atomic_save_npz(path, fingerprint=np.array(fp), **r)
             results.append(r)
@@ -375,6 +404,8 @@ def fit_body(args: FitBody) -> dict:
     }
     if shape_entry is not None:
         report["shape"] = shape_entry
+    if prior_entry is not None:
+        report["pose_prior"] = prior_entry
     overlay = out / "fit" / "overlay.png"
     write_image(
         overlay,

@@ -9,7 +9,8 @@ objective, summed over a shard of frames:
   projection (distortion included), ``w`` = detection confidence x triangulation inlier, and the
   Geman-McClure ``rho(e) = sigma^2 e^2 / (e^2 + sigma^2)`` (an outlier costs at most ``sigma^2``);
 - 3D: ``lambda_3d rho_m(|J_tm - X_tm|)`` to the triangulated points (speeds up convergence, robust in metres);
-- pose prior: ``lambda_pose |theta_t|^2`` (the rig's rest pose is the mean; joints no keypoint sees stay near it);
+- pose prior: ``lambda_pose |theta_t - mu|^2``, ``mu`` the rest pose (0) or the mean pose of motion capture on the
+  same rig (``prior_mean``, :mod:`gsavatar.fitting.prior`); joints no keypoint sees stay near it;
 - joint limits: ``lambda_limit sum relu(|theta| - limit)^2``;
 - temporal smoothness: ``lambda_smooth |J_{t+1} - 2 J_t + J_{t-1}|^2`` (metres) and the same on ``theta``;
 - silhouette (optional, :class:`Silhouette`; a third stage of ``silhouette_steps`` after the keypoint fit):
@@ -26,7 +27,8 @@ stage, the rig's rest heads become ``heads + beta . dheads`` and ``lambda_shape 
 standard-deviation units) keeps unseen directions at the mean shape.
 
 Initialisation: the root transform per frame by Kabsch from the rest-pose joints to the triangulated torso
-joints, the pose at rest; then ``root_steps`` Adam steps on the root alone and ``steps`` on everything.
+joints, the pose at the prior's centre ``mu``; then ``root_steps`` Adam steps on the root alone and ``steps`` on
+everything.
 """
 
 from __future__ import annotations
@@ -307,6 +309,7 @@ def fit_sequence(
     progress=None,
     shape: ShapeBasis | None = None,
     silhouette: Silhouette | None = None,
+    prior_mean: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Fit a shard of frames (module docstring).
 
@@ -315,7 +318,8 @@ def fit_sequence(
     (pose [F, P], root_rotation [F, 3], root_translation [F, 3]) to start from (default: Kabsch root, rest
     pose). ``progress(i, n)`` is called every step. ``shape``: fit one shape vector for the sequence too (its
     ``heads`` replace the rig's; the Kabsch start uses the rig's). ``silhouette``: masks of these frames for the
-    silhouette term (used with ``config.w_silhouette`` > 0 in a third stage on pose and root). -> pose, root_rotation,
+    silhouette term (used with ``config.w_silhouette`` > 0 in a third stage on pose and root). ``prior_mean`` [P]:
+    the pose prior's centre and the starting pose (default: the rest pose, 0). -> pose, root_rotation,
     root_translation (float32), ``reprojection_px`` [F] (mean over inlier detections of the fitted joints; NaN
     without any) and, with ``shape``, ``betas`` [B].
     """
@@ -327,6 +331,9 @@ def fit_sequence(
         if not getattr(c, name) >= 0:
             raise ValueError(f"config.{name} must be >= 0, got {getattr(c, name)}")
     dt = torch.float64
+    mu = np.zeros(rig.pose_dim) if prior_mean is None else np.asarray(prior_mean, np.float64)
+    if mu.shape != (rig.pose_dim,) or not np.all(np.isfinite(mu)):
+        raise ValueError(f"prior_mean must be [{rig.pose_dim}] finite pose parameters, got shape {list(mu.shape)}")
     kp_idx, jt_idx = joint_map.keypoints, joint_map.joints
     F = keypoints.shape[0]
     uv = torch.as_tensor(keypoints[:, :, kp_idx, :2], dtype=dt)  # [F, C, M, 2]
@@ -347,13 +354,14 @@ def fit_sequence(
         betas = torch.zeros(shape.dheads.shape[0], dtype=dt, requires_grad=True)
     if init is None:
         rr0, rt0 = initial_root(rig, jt_idx, points[:, kp_idx], joint_map.rest_offsets())
-        pose0 = np.zeros((F, rig.pose_dim))
+        pose0 = np.tile(mu, (F, 1))
     else:
         pose0, rr0, rt0 = init
     pose = torch.tensor(pose0, dtype=dt, requires_grad=True)
     rr = torch.tensor(rr0, dtype=dt, requires_grad=True)
     tr = torch.tensor(rt0, dtype=dt, requires_grad=True)
     jt = torch.as_tensor(jt_idx)
+    mu_t = torch.as_tensor(mu, dtype=dt)
     offsets = torch.as_tensor(joint_map.rest_offsets(), dtype=dt)
     norm2d = w.sum().clamp_min(1e-9)
     norm3d = wx.sum().clamp_min(1e-9)
@@ -384,7 +392,7 @@ def fit_sequence(
         if with_pose:
             total = (
                 total
-                + c.w_pose * (pose**2).sum(-1).mean()
+                + c.w_pose * ((pose - mu_t) ** 2).sum(-1).mean()
                 + c.w_limit * (torch.relu(pose.abs() - c.limit) ** 2).sum(-1).mean()
             )
             if F >= 3:
