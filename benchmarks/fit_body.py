@@ -87,6 +87,8 @@ def errors(cap, fitted, jm) -> dict:
 
 
 def scaling(cap, jm, frames: list[int], views: list[int], seed: int = 0) -> list[dict]:
+    """Fit time and error on the first F frames with the first C views (``fit_sequence`` with the default
+    FitConfig and rest-pose prior: ``--fit-args`` do not apply here)."""
     from gsavatar.fitting.fit import FitConfig, fit_sequence, posed_keypoints
     from gsavatar.fitting.synthetic import synthetic_keypoints
     from gsavatar.fitting.triangulate import triangulate
@@ -177,11 +179,17 @@ def main() -> None:
     names = sorted(cap.cameras)
     m = cap.motion
     kdir, fitted = a.work / "keypoints", a.work / a.fitted_name
+    # the keypoints are made once per work folder: what made them is recorded, and another seed / format / map
+    # asks for another folder instead of silently fitting the old ones
+    made = {"seed": a.seed, "format": a.format, "keypoints": [int(k) for k in jm.keypoints], "names": list(jm.names)}
     if not kdir.exists():
         P = posed_keypoints(cap.rig, jm, m.pose, m.root_rotation, m.root_translation)
         write = write_openpose if a.format == "body25" else write_coco_wholebody
         kp = synthetic_keypoints(P, [cap.cameras[n] for n in names], jm, seed=a.seed)
         write(kdir, kp, names, list(range(cap.num_frames)))
+        (a.work / "keypoints.json").write_text(json.dumps(made))
+    elif not (a.work / "keypoints.json").exists() or json.loads((a.work / "keypoints.json").read_text()) != made:
+        raise SystemExit(f"{kdir} holds keypoints of another seed, format or joint map: use another --work")
     t0 = time.perf_counter()
     cmd = [
         "fit-body",
@@ -199,10 +207,17 @@ def main() -> None:
     wall = time.perf_counter() - t0
     report = json.loads((fitted / "fit" / "report.json").read_text())
     res = {
-        "command": "PYTHONPATH=src OMP_NUM_THREADS=1 .venv/bin/python benchmarks/fit_body.py " + " ".join(sys.argv[1:]),
+        "command": "PYTHONPATH=src OMP_NUM_THREADS=1 .venv/bin/python benchmarks/fit_body.py "
+        + shlex.join(sys.argv[1:]),
         "machine": f"{platform.system()} {platform.machine()}, CPU only, torch {torch.__version__}, "
         f"{torch.get_num_threads()} thread(s)",
-        "keypoints": {"noise_px": 2.0, "outlier_fraction": 0.1, "drop_fraction": 0.2, "format": a.format},
+        "keypoints": {
+            "noise_px": 2.0,
+            "outlier_fraction": 0.1,
+            "drop_fraction": 0.2,
+            "format": a.format,
+            "seed": a.seed,
+        },
         "capture": str(a.capture),
         "frames": cap.num_frames,
         "views": len(names),

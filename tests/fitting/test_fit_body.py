@@ -143,6 +143,12 @@ def test_openpose_and_coco_wholebody_readers(tmp_path):
         )
     )
     np.testing.assert_allclose(read_keypoint_file(p, "body25"), np.concatenate([a, hl, hr, face]))
+    # with several people, the most confident *body* wins: a bystander's detected face does not outweigh it
+    subject = np.c_[a[:, :2], np.full(25, 0.9)]
+    bystander = {"pose_keypoints_2d": np.c_[a[:, :2], np.full(25, 0.45)].ravel().tolist()}
+    bystander["face_keypoints_2d"] = np.c_[face[:, :2], np.ones(70)].ravel().tolist()
+    p.write_text(json.dumps({"people": [bystander, {"pose_keypoints_2d": subject.ravel().tolist()}]}))
+    np.testing.assert_allclose(read_keypoint_file(p, "body25")[:25], subject)
     xy = np.random.default_rng(0).uniform(0, 100, (133, 2))
     sc = np.linspace(0.1, 1, 133)
     q = tmp_path / "c.json"
@@ -161,7 +167,9 @@ def test_openpose_and_coco_wholebody_readers(tmp_path):
     assert read_keypoint_file(tmp_path / "e.json", "body25") is None
 
 
-@pytest.mark.parametrize("kind", ["count", "hand_count", "nan", "json", "negative", "not_openpose", "camera"])
+@pytest.mark.parametrize(
+    "kind", ["count", "hand_count", "hand_width", "nan", "json", "negative", "not_openpose", "camera"]
+)
 def test_bad_keypoint_files_name_the_file(tmp_path, kind):
     root = tmp_path / "kp"
     (root / "cam00").mkdir(parents=True)
@@ -172,6 +180,8 @@ def test_bad_keypoint_files_name_the_file(tmp_path, kind):
         body["people"][0]["pose_keypoints_2d"] = good[:20].ravel().tolist()
     elif kind == "hand_count":
         body["people"][0]["hand_left_keypoints_2d"] = good[:20].ravel().tolist()
+    elif kind == "hand_width":  # [[x, y], ...]: right count of numbers for 21 x 2, not [x, y, c]
+        body["people"][0]["hand_left_keypoints_2d"] = np.full((21, 2), 0.5).tolist()
     elif kind == "nan":
         f.write_text(json.dumps(body).replace("0.5", "NaN", 1))
     elif kind == "negative":
@@ -594,6 +604,9 @@ def test_bad_pose_prior_files_name_the_file(tmp_path, kind):
     assert np.allclose(mean, 0.25) and entry["frames"] == 8
 
 
+@pytest.mark.skipif(
+    not Path("/usr/share/assimp/models/BVH/01_03.bvh").exists(), reason="needs Debian's assimp-testmodels"
+)
 def test_fit_body_pose_prior_from_bvh_is_reported_and_refits(tiny_capture, tiny_fit_inputs, tmp_path, capsys):
     """--pose-prior with a real CMU BVH (retargeted onto the capture's rig): reported, and part of the shards'
     fingerprint (the same keypoints without it refit every shard); a bad prior file writes nothing."""

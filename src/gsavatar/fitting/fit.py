@@ -315,13 +315,13 @@ def fit_sequence(
 
     keypoints [F, C, K, 3]; joint_map: :class:`~gsavatar.fitting.keypoints.JointMap` (M used keypoints);
     points [F, K, 3], inliers [F, K, C] from :func:`gsavatar.fitting.triangulate.triangulate`. ``init``:
-    (pose [F, P], root_rotation [F, 3], root_translation [F, 3]) to start from (default: Kabsch root, rest
-    pose). ``progress(i, n)`` is called every step. ``shape``: fit one shape vector for the sequence too (its
-    ``heads`` replace the rig's; the Kabsch start uses the rig's). ``silhouette``: masks of these frames for the
-    silhouette term (used with ``config.w_silhouette`` > 0 in a third stage on pose and root). ``prior_mean`` [P]:
-    the pose prior's centre and the starting pose (default: the rest pose, 0). -> pose, root_rotation,
-    root_translation (float32), ``reprojection_px`` [F] (mean over inlier detections of the fitted joints; NaN
-    without any) and, with ``shape``, ``betas`` [B].
+    (pose [F, P], root_rotation [F, 3], root_translation [F, 3]) to start from (default: Kabsch root, the
+    pose at ``prior_mean``). ``progress(i, n)`` is called every step. ``shape``: fit one shape vector for the
+    sequence too (its ``heads`` replace the rig's; the Kabsch start uses the rig's). ``silhouette``: masks of these
+    frames for the silhouette term (used with ``config.w_silhouette`` > 0 in a third stage on pose and root).
+    ``prior_mean`` [P]: the pose prior's centre and the starting pose (default: the rest pose, 0). -> pose,
+    root_rotation, root_translation (float32), ``reprojection_px`` [F] (mean over inlier detections of the fitted
+    joints; NaN without any) and, with ``shape``, ``betas`` [B].
     """
     c = config
     for name in ("sigma_px", "sigma_m", "sigma_silhouette_px"):

@@ -7,7 +7,7 @@ leading integer of the file name (OpenPose writes ``<image stem>_keypoints.json`
 - ``body25``: OpenPose ``{"people": [{"pose_keypoints_2d": [x, y, c] * 25, ...}]}``, with the
   ``hand_left_keypoints_2d`` / ``hand_right_keypoints_2d`` (21 each) and ``face_keypoints_2d`` (70) arrays where
   OpenPose wrote them (``--hand``, ``--face``): keypoints 0-24 body, 25-45 left hand, 46-66 right hand, 67-136
-  face, absent parts read as not detected;
+  face; absent or empty arrays read as not detected (with several people, the one with the most confident body);
 - ``coco_wholebody``: 133 keypoints, as MMPose / Sapiens-style tools write them: a list of instances (or
   ``{"instances": [...]}``, ``{"instance_info": [{"instances": [...]}]}``) with ``"keypoints": [[x, y], ...]``
   and ``"keypoint_scores": [...]``, or COCO ``{"annotations": [{"keypoints": [x, y, v] * 17, "foot_kpts",
@@ -178,12 +178,16 @@ def _person_body25(p: dict, file: Path, i: int) -> np.ndarray:
     parts = []
     for key, n in BODY25_PARTS:
         v = p.get(key)
-        if v is None or (isinstance(v, list) and not v):  # OpenPose run without --hand / --face
+        if v is None or (isinstance(v, list) and not v):  # OpenPose without --hand / --face (or --body 0)
             parts.append(np.zeros((n, 3)))
             continue
         a = _finite_array(v, file, f"people[{i}].{key}", 3)
-        if a.ndim != 2 or len(a) != n:
-            raise SchemaError(file, f"people[{i}].{key}", f"has {len(a)} keypoints, OpenPose writes {n}")
+        if a.shape != (n, 3):
+            raise SchemaError(
+                file,
+                f"people[{i}].{key}",
+                f"has shape {list(a.shape)} ([x, y, c] per keypoint); OpenPose writes {n} x 3",
+            )
         parts.append(a)
     return np.concatenate(parts)
 
@@ -231,7 +235,8 @@ def read_keypoint_file(path: str | Path, fmt: KeypointFormat) -> np.ndarray | No
         people = [_person_coco(p, path, i) for i, p in enumerate(obj) if isinstance(p, dict)]
     if not people:
         return None
-    return max(people, key=lambda a: float(np.clip(a[:, 2], 0, None).sum()))
+    body = 25 if fmt == "body25" else len(people[0])  # OpenPose: rank by the body, not its 70 face points
+    return max(people, key=lambda a: float(np.clip(a[:body, 2], 0, None).sum()))
 
 
 _FRAME = re.compile(r"^(\d+)")
