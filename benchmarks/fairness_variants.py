@@ -19,45 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from gsavatar.data_schema import load_capture
 from gsavatar.synth import fairness as fair
-from gsavatar.synth.render import pose_joint_positions
-from gsavatar.utils.io import read_npz
-
-
-def _load(capture: Path):
-    cap = load_capture(capture)
-    m = cap.motion
-    joints = pose_joint_positions(cap.rig, m.pose, m.root_rotation, m.root_translation)
-    levels = read_npz(capture / "gt" / "motion_states.npz", keys=("levels",))["levels"]
-    x = fair.pose_features(m.pose, m.root_translation, joints)
-    return x, levels, np.asarray(cap.splits["train"].frames), np.asarray(cap.splits["test"].frames)
-
-
-def _reduce(x: np.ndarray, train: np.ndarray, components: int = 12, raw: int = 1) -> np.ndarray:
-    mu, sd = x[train].mean(0), x[train].std(0)
-    z = (x - mu) / np.where(sd > 1e-9, sd, 1.0)
-    keep = x.shape[1] - raw
-    _, _, vt = np.linalg.svd(z[train][:, :keep], full_matrices=False)
-    return np.concatenate([z[:, :keep] @ vt[:components].T, z[:, keep:]], 1)
 
 
 def _score(X: np.ndarray, y: np.ndarray, train: np.ndarray, test: np.ndarray, alphas) -> dict:
-    fair_alphas, fair.ALPHAS = fair.ALPHAS, alphas
-    try:
-        pred = np.empty((len(test), y.shape[1]))
-        chosen = []
-        for e in range(y.shape[1]):
-            chosen.append(fair.ridge_cv(X[train], y[train][:, [e]]))
-            m = fair._ridge_fit(X[train], y[train][:, [e]], chosen[-1])
-            pred[:, e] = np.clip(fair._ridge_predict(m, X[test])[:, 0], y[train][:, e].min(), y[train][:, e].max())
-    finally:
-        fair.ALPHAS = fair_alphas
-    return {
-        "r2": fair.pooled_r2(pred, y[test]),
-        "per_state": [fair.pooled_r2(pred[:, [e]], y[test][:, [e]]) for e in range(y.shape[1])],
-        "alpha": chosen,
-    }
+    r2, per_state, chosen = fair.ridge_r2(X, y, train, test, alphas)
+    return {"r2": r2, "per_state": per_state, "alpha": chosen}
 
 
 def main() -> None:
@@ -68,9 +35,9 @@ def main() -> None:
     narrow, wide = tuple(10.0**k for k in range(-3, 5)), fair.ALPHAS
     out = {}
     for cap in a.captures:
-        x, y, train, test = _load(cap)
-        y = (y - y[train].mean(0)) / np.where(y[train].std(0) > 1e-9, y[train].std(0), 1.0)
-        z = _reduce(x, train)
+        x, levels, train, test = fair.capture_inputs(cap)
+        y, _ = fair.standardise_states(levels, train)
+        z = fair.reduce_features(x, train, raw_columns=1)
         stacked, changes = fair.stack_history(z, fair.HISTORY), fair.history_features(z, fair.HISTORY)
         sq = lambda m: np.concatenate([m, m**2], 1)  # noqa: E731
         rows = {

@@ -88,12 +88,13 @@ def pooled_r2(pred: np.ndarray, target: np.ndarray) -> float:
     return 1.0 - sse / sst if sst > 1e-12 else float("nan")
 
 
-def ridge_cv(X: np.ndarray, Y: np.ndarray, folds: int = 5) -> float:
-    """Ridge regularisation with the lowest squared error over ``folds`` contiguous blocks of rows."""
+def ridge_cv(X: np.ndarray, Y: np.ndarray, folds: int = 5, alphas: tuple[float, ...] = ALPHAS) -> float:
+    """Ridge regularisation (one of ``alphas``) with the lowest squared error over ``folds`` contiguous blocks of
+    rows."""
     n = len(X)
     edges = np.linspace(0, n, min(folds, n) + 1).astype(int)
-    best, best_err = ALPHAS[0], np.inf
-    for a in ALPHAS:
+    best, best_err = alphas[0], np.inf
+    for a in alphas:
         err = 0.0
         for k in range(len(edges) - 1):
             va = np.zeros(n, bool)
@@ -135,6 +136,42 @@ def few_event_states(fairness: dict, names: list[str]) -> list[str]:
     ]
 
 
+def reduce_features(x: np.ndarray, train: np.ndarray, components: int = 12, raw_columns: int = 0) -> np.ndarray:
+    """Per-frame features standardised on the ``train`` rows, all but the last ``raw_columns`` reduced to their first
+    ``components`` PCA components (of the training rows): keeps the history regressor small. [F, D] -> [F, <= c + r]
+    """
+    x = np.asarray(x, np.float64)
+    mu, sd = x[train].mean(0), x[train].std(0)
+    z = (x - mu) / np.where(sd > 1e-9, sd, 1.0)
+    keep = x.shape[1] - raw_columns
+    _, _, vt = np.linalg.svd(z[train][:, :keep], full_matrices=False)
+    return np.concatenate([z[:, :keep] @ vt[: min(components, vt.shape[0])].T, z[:, keep:]], 1)
+
+
+def standardise_states(states: np.ndarray, train: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """States scaled to zero mean and unit std on the ``train`` rows. [F, E] -> ([F, E], training mean [E])"""
+    y = np.asarray(states, np.float64).reshape(len(states), -1)
+    ym, ys = y[train].mean(0), y[train].std(0)
+    return (y - ym) / np.where(ys > 1e-9, ys, 1.0), ym
+
+
+def ridge_r2(
+    X: np.ndarray, y: np.ndarray, train: np.ndarray, test: np.ndarray, alphas: tuple[float, ...] = ALPHAS
+) -> tuple[float, list[float], list[float]]:
+    """Each state's ridge (its own regularisation by :func:`ridge_cv`) fit on the ``train`` rows, predictions clipped
+    to the state's training range, scored on the ``test`` rows. X [F, D], y [F, E]
+    -> (pooled R^2, per-state R^2 [E], chosen alphas [E])"""
+    pred = np.empty((len(test), y.shape[1]))
+    chosen = []
+    for e in range(y.shape[1]):
+        chosen.append(ridge_cv(X[train], y[train][:, [e]], alphas=alphas))
+        fit = _ridge_fit(X[train], y[train][:, [e]], chosen[-1])
+        # Clipped to the training range: a state never leaves it, and novel test poses must not extrapolate.
+        pred[:, e] = np.clip(_ridge_predict(fit, X[test])[:, 0], y[train][:, e].min(), y[train][:, e].max())
+    per_state = [pooled_r2(pred[:, [e]], y[test][:, [e]]) for e in range(y.shape[1])]
+    return pooled_r2(pred, y[test]), per_state, chosen
+
+
 def predictability(
     features: np.ndarray,
     states: np.ndarray,
@@ -151,33 +188,15 @@ def predictability(
     -> {"pose_only", "history", "per_state": {"pose_only": [E], "history": [E]},
         "crossings": {"train": [E], "test": [E]} (:func:`mean_crossings` of the training mean), ...}
     """
-    x = np.asarray(features, np.float64)
-    y = np.asarray(states, np.float64).reshape(len(x), -1)
     train, test = np.asarray(train, np.int64), np.asarray(test, np.int64)
     if len(train) < 4 or len(test) < 2:
         raise ValueError(f"need >= 4 train and >= 2 test frames, got {len(train)} and {len(test)}")
-    # PCA of the per-frame features on the training frames keeps the stacked regressor small.
-    mu, sd = x[train].mean(0), x[train].std(0)
-    sd = np.where(sd > 1e-9, sd, 1.0)
-    z = (x - mu) / sd
-    keep = x.shape[1] - raw_columns
-    _, _, vt = np.linalg.svd(z[train][:, :keep], full_matrices=False)
-    z = np.concatenate([z[:, :keep] @ vt[: min(components, vt.shape[0])].T, z[:, keep:]], 1)
-    ym, ys = y[train].mean(0), y[train].std(0)
-    y = (y - ym) / np.where(ys > 1e-9, ys, 1.0)
+    z = reduce_features(features, train, components, raw_columns)
+    y, ym = standardise_states(states, train)
     out: dict = {"per_state": {}}
     for name, X in (("pose_only", z), ("history", history_features(z, history))):
-        pred = np.empty((len(test), y.shape[1]))
-        alphas = []
-        for e in range(y.shape[1]):  # each state its own regularisation
-            alphas.append(ridge_cv(X[train], y[train][:, [e]]))
-            fit = _ridge_fit(X[train], y[train][:, [e]], alphas[-1])
-            # Clipped to the training range: a state never leaves it, and novel test poses must not extrapolate.
-            pred[:, e] = np.clip(_ridge_predict(fit, X[test])[:, 0], y[train][:, e].min(), y[train][:, e].max())
-        out[name] = pooled_r2(pred, y[test])
-        out["per_state"][name] = [pooled_r2(pred[:, [e]], y[test][:, [e]]) for e in range(y.shape[1])]
-        out[f"{name}_alpha"] = alphas
-    raw = np.asarray(states, np.float64).reshape(len(x), -1)
+        out[name], out["per_state"][name], out[f"{name}_alpha"] = ridge_r2(X, y, train, test)
+    raw = np.asarray(states, np.float64).reshape(len(z), -1)
     out["crossings"] = {"train": mean_crossings(raw[train], ym), "test": mean_crossings(raw[test], ym)}
     out.update(
         {
@@ -191,6 +210,15 @@ def predictability(
     return out
 
 
+def _json_ready(v):
+    """NaN / inf floats (a state constant on the test frames) as None, recursively."""
+    if isinstance(v, dict):
+        return {k: _json_ready(w) for k, w in v.items()}
+    if isinstance(v, list):
+        return [_json_ready(w) for w in v]
+    return None if isinstance(v, float) and not np.isfinite(v) else v
+
+
 def history_fairness(
     motion,
     states: np.ndarray,
@@ -201,32 +229,29 @@ def history_fairness(
 ) -> dict:
     """:func:`predictability` of the appearance ``states`` [F, E] from a capture's ``motion`` and its posed
     ``joints`` [F, J, 3] (JSON-ready)."""
-    res = predictability(
-        pose_features(motion.pose, motion.root_translation, joints), states, train, test, history, raw_columns=1
-    )
-
-    def clean(v):
-        if isinstance(v, dict):
-            return {k: clean(w) for k, w in v.items()}
-        if isinstance(v, list):
-            return [clean(w) for w in v]
-        return None if isinstance(v, float) and not np.isfinite(v) else v
-
-    return clean(res)
+    features = pose_features(motion.pose, motion.root_translation, joints)
+    return _json_ready(predictability(features, states, train, test, history, raw_columns=1))
 
 
-def capture_fairness(capture) -> dict:
-    """:func:`history_fairness` of a written synthetic capture (``gt/motion_states.npz``, motion, rig, splits)."""
+def capture_inputs(capture) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What the fairness check of a written synthetic capture reads: per-frame :func:`pose_features` (root height
+    last), the true states ``gt/motion_states.npz`` levels, the train and test frames.
+    -> (features [F, D], levels [F, E], train [n], test [m])"""
     from pathlib import Path
 
     capture = Path(capture)
     cap = load_capture(capture)
-    z = read_npz(capture / "gt" / "motion_states.npz", keys=("levels",))
+    levels = read_npz(capture / "gt" / "motion_states.npz", keys=("levels",))["levels"]
     m = cap.motion
     joints = pose_joint_positions(cap.rig, m.pose, m.root_rotation, m.root_translation)
-    return history_fairness(
-        m, z["levels"], np.asarray(cap.splits["train"].frames), np.asarray(cap.splits["test"].frames), joints=joints
-    )
+    features = pose_features(m.pose, m.root_translation, joints)
+    return features, levels, np.asarray(cap.splits["train"].frames), np.asarray(cap.splits["test"].frames)
+
+
+def capture_fairness(capture) -> dict:
+    """The fairness check (:func:`predictability`, JSON-ready) of a written synthetic capture."""
+    features, levels, train, test = capture_inputs(capture)
+    return _json_ready(predictability(features, levels, train, test, raw_columns=1))
 
 
 def main(argv: list[str] | None = None) -> int:
