@@ -235,7 +235,7 @@ def read_keypoint_file(path: str | Path, fmt: KeypointFormat) -> np.ndarray | No
         people = [_person_coco(p, path, i) for i, p in enumerate(obj) if isinstance(p, dict)]
     if not people:
         return None
-    body = 25 if fmt == "body25" else len(people[0])  # OpenPose: rank by the body, not its 70 face points
+    body = BODY25_PARTS[0][1] if fmt == "body25" else len(people[0])  # OpenPose: rank by the body, not the face
     return max(people, key=lambda a: float(np.clip(a[:body, 2], 0, None).sum()))
 
 
