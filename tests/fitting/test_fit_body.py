@@ -78,6 +78,12 @@ def arm_setup():
     return rig, jmap
 
 
+def param_slot(rig, name: str) -> int:
+    """First pose slot of the rig parameter ``name``."""
+    names = [p.name for p in rig.params]
+    return sum(p.size for p in rig.params[: names.index(name)])
+
+
 def write_map(tmp_path: Path, joints: dict) -> Path:
     from gsavatar.fitting.keypoints import resources
 
@@ -97,8 +103,7 @@ def test_fit_recovers_a_hand_made_pose(tmp_path):
     cams = ring_cameras(6)
     F = 4
     pose = np.zeros((F, rig.pose_dim))
-    names = [p.name for p in rig.params]
-    off = lambda n: sum(p.size for p in rig.params[: names.index(n)])  # noqa: E731 - first slot of a parameter
+    off = lambda n: param_slot(rig, n)  # noqa: E731
     pose[:, off("Spine.rz")] = 0.3
     pose[:, off("LeftArm.ry")] = np.linspace(0.2, 0.5, F)
     pose[:, off("LeftForeArm.r") + 2] = np.linspace(0.4, 0.9, F)  # elbow bend
@@ -557,8 +562,7 @@ def test_pose_prior_mean_decides_what_no_keypoint_sees(tmp_path):
     jm = load_joint_map("body25", rig, write_map(tmp_path, jmap))
     cams = ring_cameras(6)
     F = 3
-    names = [p.name for p in rig.params]
-    off = lambda n: sum(p.size for p in rig.params[: names.index(n)])  # noqa: E731
+    off = lambda n: param_slot(rig, n)  # noqa: E731
     pose = np.zeros((F, rig.pose_dim))
     pose[:, off("LeftArm.ry")] = 0.3
     pose[:, off("LeftForeArm.r") + 2] = 0.6
