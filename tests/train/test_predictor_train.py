@@ -18,6 +18,7 @@ from gsavatar.train.predictor import (
     PredictorTrainer,
     SequenceData,
     WindowSampler,
+    burn_in_context,
     dual_context_loss,
     evaluate_predictor,
     history_index,
@@ -346,3 +347,32 @@ def test_weight_average_follows_the_ema_recursion_resumes_and_is_what_the_checkp
         PredictorTrainer(model(), data, [(0, 60)], train_cfg(steps=6), tmp_path / "b")
     with pytest.raises(ValueError, match="ema"):
         PredictorTrainer(model(), data, [(0, 60)], train_cfg(ema=1.0), Path("/nonexistent/never-written"))
+
+
+def test_burn_in_starts_the_zero_pass_from_a_free_running_rollout():
+    data, m, rows, seg, ctx, clean = perturbed_unroll_case()
+    seg = torch.tensor([0, 0, 10])  # the third window's segment starts at 10: its burn-in is clamped there
+    rows = torch.tensor([[20, 21], [3, 4], [12, 13]])
+    zero = m.zero_latents().expand(3, A, L)
+    got = burn_in_context(m, data, rows[:, 0], seg, 6, zero)
+
+    # oracle: step the predictor frame by frame from the zero latents, each window clamped at its segment start
+    def naive(first: int, start: int) -> torch.Tensor:
+        prev = m.zero_latents()[None]
+        for r in range(first - 6, first):
+            r = max(r, start)
+            h = [max(r - k, start) for k in range(N - 1, -1, -1)]
+            prev = m(data.pose[h][None], data.root_rotation[h][None], data.root_translation[h][None], prev)
+        return prev[0]
+
+    with torch.no_grad():
+        want = torch.stack([naive(20, 0), naive(3, 0), naive(12, 10)])
+    torch.testing.assert_close(got, want)
+    assert not got.requires_grad
+    # the zero pass of the dual loss starts from it; the GT pass does not change
+    d0 = dual_context_loss(m, data, rows, seg)
+    d1 = dual_context_loss(m, data, rows, seg, burn_in=6)
+    torch.testing.assert_close(d0.gt, d1.gt)
+    assert abs(float(d0.zero.detach()) - float(d1.zero.detach())) > 1e-6
+    with pytest.raises(ValueError, match="burn_in"):
+        PredictorTrainer(m, data, [(0, 40)], train_cfg(burn_in=-1), Path("/nonexistent/never-written"))

@@ -82,6 +82,12 @@ class PredictorTrainConfig:
     given context and each fed-back prediction), in units of the per-(anchor, dim) latent scale; 0 = none (the
     paper's). Trains the predictor to correct its own drift instead of trusting the latents fed back; measured in
     docs/train.md."""
+    burn_in: int = 0
+    """Frames the zero-context pass runs free, without gradients, before each window (beyond the paper; 0 = none,
+    the paper's): it starts from the "zero" latents at frame ``s - burn_in`` (clamped at the segment start, where
+    the pose window repeats the first frame as in driving) and feeds back its own predictions up to ``s - 1``, so the
+    supervised window sees the latents a long free-running rollout produces instead of those of a fresh start
+    (driving runs hundreds of frames, training windows a few). Measured in docs/train.md."""
     ema: float = 0.0
     """Decay of an exponential moving average of the weights, updated after every step (0 = none, the paper's). The
     average is what is evaluated, saved as the checkpoint's ``predictor`` and driven (the training weights are kept
@@ -296,14 +302,18 @@ def dual_context_loss(
     context_noise: float = 0.0,
     gen: torch.Generator | None = None,
     feature_noise: float = 0.0,
+    burn_in: int = 0,
 ) -> DualLoss:
     """Unrolled losses of the GT-context and zero-context passes (one doubled batch), summed
-    (``context_noise``, ``gen``, ``feature_noise``: see :func:`unroll`)."""
+    (``context_noise``, ``gen``, ``feature_noise``: see :func:`unroll`; ``burn_in``: the zero-context pass starts
+    that many frames earlier, :func:`burn_in_context`)."""
     B = rows.shape[0]
     dev = data.latents.device
     rows = rows.to(dev)
     gt_prev = data.latents[rows[:, 0] - 1]  # [B, A, L]
     zero = model.zero_latents().to(gt_prev).expand_as(gt_prev)
+    if burn_in > 0:
+        zero = burn_in_context(model, data, rows[:, 0], seg_start, burn_in, zero)
     pred = unroll(
         model,
         data,
@@ -323,6 +333,22 @@ def dual_context_loss(
         **{f"zero_{k}": float(v.detach()) for k, v in tz.items()},
     }
     return DualLoss(gt + zero, gt, zero, logs)
+
+
+@torch.no_grad()
+def burn_in_context(
+    model: AppearancePredictor, data: SequenceData, first: Tensor, seg_start: Tensor, burn_in: int, ctx0: Tensor
+) -> Tensor:
+    """Previous latents of frame ``first`` after a free-running rollout from ``ctx0`` at ``first - burn_in``.
+
+    The rollout's frames are clamped at the segment start (a window that starts there repeats the start frame,
+    poses and all, like :meth:`AppearancePredictor.init_state`). No gradients flow through it.
+    first [B], seg_start [B], ctx0 [B, A, L] -> [B, A, L]
+    """
+    dev = data.pose.device
+    first, seg_start = first.to(dev), seg_start.to(dev)
+    prefix = torch.maximum(first[:, None] - burn_in + torch.arange(burn_in, device=dev), seg_start[:, None])
+    return unroll(model, data, prefix, seg_start, ctx0)[:, -1]
 
 
 def initial_loss(model: AppearancePredictor, data: SequenceData, rows: Tensor) -> Tensor:
@@ -439,6 +465,8 @@ class PredictorTrainer:
             raise ValueError(f"context_noise must be a finite number >= 0, got {cfg.context_noise}")
         if not (cfg.feature_noise >= 0 and math.isfinite(cfg.feature_noise)):
             raise ValueError(f"feature_noise must be a finite number >= 0, got {cfg.feature_noise}")
+        if cfg.burn_in < 0:
+            raise ValueError(f"burn_in must be >= 0, got {cfg.burn_in}")
         if not 0.0 <= cfg.ema < 1.0:
             raise ValueError(f"ema must be in [0, 1), got {cfg.ema}")
         self.members = list(model.members) if isinstance(model, PredictorEnsemble) else [model]
@@ -516,7 +544,9 @@ class PredictorTrainer:
         for k, m in enumerate(self.members):
             g = step_generator(cfg.seed + MEMBER_SEED_STRIDE * k, step)
             rows, seg = self.sampler.sample(cfg.batch_size, g)
-            d = dual_context_loss(m, self.data, rows, seg, cfg.detach_feedback, cfg.context_noise, g, cfg.feature_noise)
+            d = dual_context_loss(
+                m, self.data, rows, seg, cfg.detach_feedback, cfg.context_noise, g, cfg.feature_noise, cfg.burn_in
+            )
             part, mlogs = d.total, {**d.logs, "gt": float(d.gt.detach()), "zero": float(d.zero.detach())}
             if m.initial is not None and cfg.initial_weight > 0:
                 irows = self.train_rows[
