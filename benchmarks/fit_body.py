@@ -78,6 +78,9 @@ def errors(cap, fitted, jm) -> dict:
         "mpjpe_mapped_mm": float(e[:, jm.joints].mean()),
         "mpjpe_mapped_p95_mm": float(np.percentile(e[:, jm.joints], 95)),
         "mpjpe_all_mm": float(e.mean()),
+        # jitter: the mean joint acceleration (second difference over frames) of the fitted and the true motion
+        "joint_acceleration_mm": float(1000 * np.linalg.norm(J1[2:] - 2 * J1[1:-1] + J1[:-2], axis=-1).mean()),
+        "true_joint_acceleration_mm": float(1000 * np.linalg.norm(J0[2:] - 2 * J0[1:-1] + J0[:-2], axis=-1).mean()),
         "root_rotation_deg": float(np.degrees(root).mean()),
         "root_translation_mm": float(1000 * np.linalg.norm(m1.root_translation - m0.root_translation, axis=-1).mean()),
         "local_rotation_deg": float(np.degrees(local).mean()),

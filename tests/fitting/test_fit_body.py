@@ -584,6 +584,87 @@ def test_pose_prior_mean_decides_what_no_keypoint_sees(tmp_path):
         fit_sequence(rig, cams, kp, jm, tri.points, tri.inliers, FitConfig(steps=1), prior_mean=mu[:-1])
 
 
+def test_pose_prior_spread_resolves_what_the_keypoints_cannot_see(tmp_path):
+    """On the arm (every keypoint on one line at rest) a twist about that line moves no keypoint until the elbow
+    bends, and then the upper arm's twist, the forearm's and the hand's trade with each other and with the root.
+    A prior whose motion only ever moves the three parameters the truth moves (spread 1 rad there, 0 elsewhere: the
+    floor applies) recovers the limb's rotations; a prior of 1 rad everywhere (no spread) fits the points as well
+    but not the rotations."""
+    import torch
+
+    from gsavatar.geometry.lbs import skinning_transforms
+
+    from types import SimpleNamespace
+
+    rig, jmap = arm_setup()
+    # a marker 10 cm above the spine's head pins the roll of the whole chain about its line (the root's)
+    spine = rig.joint_index("Spine")
+    tpl = SimpleNamespace(
+        vertices=rig.heads()[spine][None] + [[0.0, 0.1, 0.0]],
+        skin_indices=np.array([[spine]]),
+        skin_weights=np.array([[1.0]]),
+    )
+    jmap = {**jmap, "RShoulder": {"joints": ["Spine"], "extreme": "+y"}}
+    jm = load_joint_map("body25", rig, write_map(tmp_path, jmap), template=tpl)
+    cams = ring_cameras(6)
+    F = 3
+    off = lambda n: param_slot(rig, n)  # noqa: E731
+    moved = [off("LeftArm.rx"), off("LeftForeArm.r") + 2, off("LeftHand.rz")]
+    pose = np.zeros((F, rig.pose_dim))
+    pose[:, moved] = [0.5, 0.6, 0.4]  # upper-arm twist (the bone runs along +x), elbow bend, wrist bend
+    rr, tr = np.zeros((F, 3)), np.tile([0.0, 0.9, 0.0], (F, 1))
+    t = lambda *a: [torch.as_tensor(x, dtype=torch.float64) for x in a]  # noqa: E731
+    J = posed_keypoints(rig, jm, pose, rr, tr)
+    kp = synthetic_keypoints(J, cams, jm, noise_px=0.0, outlier_fraction=0.0, drop_fraction=0.0)
+    tri = triangulate(kp, cams)
+    limb = [rig.joint_index(n) for n in ("LeftArm", "LeftForeArm", "LeftHand")]
+    R_true = skinning_transforms(rig, *t(pose, rr, tr))[:, limb, :3, :3].numpy()
+    std = np.zeros(rig.pose_dim)
+    std[moved] = 1.0
+    angle = {}
+    for name, spread in (("spread", std), ("flat", None)):
+        res = fit_sequence(rig, cams, kp, jm, tri.points, tri.inliers, FitConfig(), prior_std=spread)
+        fitted = t(*(res[k] for k in ("pose", "root_rotation", "root_translation")))
+        Jf = posed_keypoints(rig, jm, *(res[k] for k in ("pose", "root_rotation", "root_translation")))
+        assert 1000 * np.linalg.norm(Jf - J, axis=-1).mean() < 3.0  # both fit the points
+        R = skinning_transforms(rig, *fitted)[:, limb, :3, :3].numpy()
+        cos = (np.einsum("fjab,fjab->fj", R, R_true) - 1) / 2
+        angle[name] = np.degrees(np.arccos(np.clip(cos, -1, 1)))  # [F, 3] global rotation error per limb joint
+    assert angle["spread"].max() < 5.0, angle  # measured 0.9-3.9 deg
+    assert angle["flat"].min() > 20.0, angle  # measured 27-35 deg: the twist went elsewhere
+    with pytest.raises(ValueError, match="prior_std"):
+        fit_sequence(rig, cams, kp, jm, tri.points, tri.inliers, FitConfig(steps=1), prior_std=-std)
+
+
+def test_prior_statistics_do_not_mix_euler_branches(tmp_path):
+    """The same rotations written in the other Euler branch ``(a + pi, pi - b, c + pi)`` (and shifted by 2 pi) on half
+    the frames, as a retargeted motion does after a near-gimbal frame: the prior's mean and spread are those of the
+    un-aliased motion, and canonical_poses keeps every frame's rotations."""
+    import torch
+
+    from gsavatar.fitting.prior import canonical_poses, pose_prior_stats
+    from gsavatar.geometry.lbs import pose_to_local_rotations
+
+    rig, _ = arm_setup()
+    g = np.random.default_rng(0)
+    F = 40
+    pose = np.zeros((F, rig.pose_dim))
+    arm = [param_slot(rig, f"LeftArm.{a}") for a in ("rx", "ry", "rz")]
+    pose[:, arm] = [0.3, -0.2, 0.5] + 0.1 * g.standard_normal((F, 3))
+    aliased = pose.copy()
+    a, b, c = (pose[F // 2 :, k] for k in arm)
+    aliased[F // 2 :, arm] = np.stack([a + np.pi, np.pi - b, c + np.pi - 2 * np.pi], -1)
+    L = lambda p: pose_to_local_rotations(torch.as_tensor(p), rig).numpy()  # noqa: E731
+    np.testing.assert_allclose(L(aliased), L(pose), atol=1e-12)  # the same motion
+    assert np.abs(aliased.mean(0) - pose.mean(0)).max() > 1.0  # whose raw angle mean is meaningless
+    np.testing.assert_allclose(canonical_poses(aliased, rig), pose, atol=1e-9)
+    p = tmp_path / "aliased.npz"
+    np.savez(p, pose=aliased)
+    mean, std, _ = pose_prior_stats([p], rig)
+    np.testing.assert_allclose(mean, pose.mean(0), atol=1e-9)
+    np.testing.assert_allclose(std, pose.std(0), atol=1e-9)
+
+
 @pytest.mark.parametrize("kind", ["missing", "suffix", "shape", "nan", "no_pose"])
 def test_bad_pose_prior_files_name_the_file(tmp_path, kind):
     from gsavatar.fitting.prior import pose_prior_mean
@@ -606,6 +687,11 @@ def test_bad_pose_prior_files_name_the_file(tmp_path, kind):
     np.savez(q, pose=np.full((4, rig.pose_dim), 0.25))
     mean, entry = pose_prior_mean([q, q], rig)
     assert np.allclose(mean, 0.25) and entry["frames"] == 8
+    from gsavatar.fitting.prior import pose_prior_stats
+
+    np.savez(q, pose=np.stack([np.full(rig.pose_dim, 0.25), np.full(rig.pose_dim, 0.75)]))
+    mean, std, entry = pose_prior_stats([q], rig)
+    assert np.allclose(mean, 0.5) and np.allclose(std, 0.25) and entry["frames"] == 2
 
 
 @pytest.mark.skipif(

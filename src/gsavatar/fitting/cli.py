@@ -35,7 +35,7 @@ from gsavatar.data_schema.capture import Motion, write_capture_metadata
 from gsavatar.data_schema.template import save_template
 from gsavatar.fitting.fit import FitConfig, ShapeBasis, Silhouette, fit_sequence, silhouette_distance, surface_subset
 from gsavatar.fitting.keypoints import detect_format, load_joint_map, read_keypoints
-from gsavatar.fitting.prior import pose_prior_mean
+from gsavatar.fitting.prior import pose_prior_stats
 from gsavatar.fitting.triangulate import project_world, triangulate
 from gsavatar.geometry.lbs import pose_joints
 from gsavatar.importers.smplx_body import shaped_vertices, smplx_rig, smplx_shape_basis
@@ -86,6 +86,9 @@ class FitBody:
     (retargeted onto the capture's rig) or ``.npz`` files with ``pose`` [F, P] (e.g. another capture's
     ``motion.npz``). Default: the rest pose. Decides what no keypoint sees (limb twist, fingers, the split of a
     torso rotation between the root and pass-through joints; docs/fit_body.md)."""
+    pose_prior_spread: bool = True
+    """With ``--pose-prior``: scale the prior per parameter by that motion's spread (a degree of freedom real motion
+    hardly moves is held near its mean; ``--fit.prior-std-floor``); False: 1 rad everywhere, the mean only."""
     num_betas: int = 10
     """Shape coefficients fitted with ``--smplx-model``."""
     shape_frames: int = 60
@@ -150,7 +153,16 @@ def _shaped_body(model, cap, betas: np.ndarray):
 
 
 def fit_shape(
-    args: FitBody, cap, model, fmt: str, kp, tri, seen: np.ndarray, out: Path, prior_mean: np.ndarray | None = None
+    args: FitBody,
+    cap,
+    model,
+    fmt: str,
+    kp,
+    tri,
+    seen: np.ndarray,
+    out: Path,
+    prior_mean: np.ndarray | None = None,
+    prior_std: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict]:
     """One shape for the sequence: ``betas`` fitted with the poses of up to ``args.shape_frames`` seen frames spread
     over it (no temporal terms: the frames are not neighbours); reused from ``out/fit/shape.npz`` when its inputs
@@ -170,6 +182,7 @@ def fit_shape(
         f"{dheads.shape[0]} {args.shape_steps}".encode(),
         model_sha.encode(),
         b"" if prior_mean is None else np.asarray(prior_mean, np.float64).tobytes(),
+        b"" if prior_std is None else b"spread" + np.asarray(prior_std, np.float64).tobytes(),
     )
     path = out / "fit" / "shape.npz"
     t0 = time.perf_counter()
@@ -191,6 +204,7 @@ def fit_shape(
                 progress=lambda i, n: bar.advance(),
                 shape=ShapeBasis(heads0, dheads),
                 prior_mean=prior_mean,
+                prior_std=prior_std,
             )
         betas, reused = r["betas"].astype(np.float64), False
         atomic_save_npz(path, fingerprint=np.array(fp), betas=betas, frames=sel)
@@ -281,7 +295,13 @@ def fit_body(args: FitBody) -> dict:
                 f"has {model.num_betas} shape components, --num-betas asks {args.num_betas}",
             )
     jm = load_joint_map(fmt, cap.rig, args.joint_map, cap.template)
-    prior_mean, prior_entry = pose_prior_mean(args.pose_prior, cap.rig) if args.pose_prior else (None, None)
+    prior_mean, prior_std, prior_entry = (
+        pose_prior_stats(args.pose_prior, cap.rig) if args.pose_prior else (None, None, None)
+    )
+    if prior_entry is not None:
+        prior_entry["spread"] = args.pose_prior_spread
+        if not args.pose_prior_spread:
+            prior_std = None
     names = sorted(cap.cameras)
     cams = [cap.cameras[n] for n in names]
     frames = list(range(cap.num_frames))
@@ -312,7 +332,7 @@ def fit_body(args: FitBody) -> dict:
         )
     template, rig, shape_entry, extra = cap.template, cap.rig, None, b""
     if model is not None:
-        betas, shape_entry = fit_shape(args, cap, model, fmt, kp, tri, seen, out, prior_mean)
+        betas, shape_entry = fit_shape(args, cap, model, fmt, kp, tri, seen, out, prior_mean, prior_std)
         template, rig = _shaped_body(model, cap, betas)
         jm = load_joint_map(fmt, rig, args.joint_map, template)
         extra = np.asarray(betas, np.float64).tobytes()
@@ -323,6 +343,8 @@ def fit_body(args: FitBody) -> dict:
         extra += masks_digest
     if prior_mean is not None:
         extra += b"pose prior" + prior_mean.tobytes()
+    if prior_std is not None:
+        extra += b"spread" + prior_std.tobytes()
     fp = _fingerprint(kp, args, jm, extra)
     shard_dir = out / "fit" / "shards"
     results, reused, t_fit = [], 0, 0.0
@@ -355,6 +377,7 @@ def fit_body(args: FitBody) -> dict:
                 args.fit,
                 silhouette=sil,
                 prior_mean=prior_mean,
+                prior_std=prior_std,
             )
             t_fit += time.perf_counter() - t1
             atomic_save_npz(path, fingerprint=np.array(fp), **r)

@@ -9,8 +9,9 @@ objective, summed over a shard of frames:
   projection (distortion included), ``w`` = detection confidence x triangulation inlier, and the
   Geman-McClure ``rho(e) = sigma^2 e^2 / (e^2 + sigma^2)`` (an outlier costs at most ``sigma^2``);
 - 3D: ``lambda_3d rho_m(|J_tm - X_tm|)`` to the triangulated points (speeds up convergence, robust in metres);
-- pose prior: ``lambda_pose |theta_t - mu|^2``, ``mu`` the rest pose (0) or the mean pose of motion capture on the
-  same rig (``prior_mean``, :mod:`gsavatar.fitting.prior`); joints no keypoint sees stay near it;
+- pose prior: ``lambda_pose sum_p ((theta_tp - mu_p) / s_p)^2``, ``mu`` the rest pose (0) or the mean pose of
+  motion capture on the same rig (``prior_mean``, :mod:`gsavatar.fitting.prior`), ``s`` 1 rad or, with that motion's
+  per-parameter spread (``prior_std``), ``sqrt(std^2 + prior_std_floor^2)``; joints no keypoint sees stay near it;
 - joint limits: ``lambda_limit sum relu(|theta| - limit)^2``;
 - temporal smoothness: ``lambda_smooth |J_{t+1} - 2 J_t + J_{t-1}|^2`` (metres) and the same on ``theta``;
 - silhouette (optional, :class:`Silhouette`; a third stage of ``silhouette_steps`` after the keypoint fit):
@@ -63,7 +64,9 @@ class FitConfig:
     w_3d: float = 1.0
     """Weight of the 3D term (per m^2 of rho, against the reprojection's per px^2: see ``fit_sequence``)."""
     w_pose: float = 1e-2
-    """Pose prior weight (per rad^2)."""
+    """Pose prior weight (per rad^2; with a prior spread ``prior_std``, per squared spread)."""
+    prior_std_floor: float = 0.05
+    """Radians added (in quadrature) to a prior spread, so a parameter the prior's motion never moves can still move."""
     w_limit: float = 1.0
     """Joint-limit weight (per rad^2 beyond ``limit``)."""
     limit: float = 2.6
@@ -310,6 +313,7 @@ def fit_sequence(
     shape: ShapeBasis | None = None,
     silhouette: Silhouette | None = None,
     prior_mean: np.ndarray | None = None,
+    prior_std: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Fit a shard of frames (module docstring).
 
@@ -319,7 +323,8 @@ def fit_sequence(
     pose at ``prior_mean``). ``progress(i, n)`` is called every step. ``shape``: fit one shape vector for the
     sequence too (its ``heads`` replace the rig's; the Kabsch start uses the rig's). ``silhouette``: masks of these
     frames for the silhouette term (used with ``config.w_silhouette`` > 0 in a third stage on pose and root).
-    ``prior_mean`` [P]: the pose prior's centre and the starting pose (default: the rest pose, 0). -> pose,
+    ``prior_mean`` [P]: the pose prior's centre and the starting pose (default: the rest pose, 0); ``prior_std`` [P]:
+    its spread per parameter (default: 1 rad everywhere; see the module docstring). -> pose,
     root_rotation, root_translation (float32), ``reprojection_px`` [F] (mean over inlier detections of the fitted
     joints; NaN without any) and, with ``shape``, ``betas`` [B].
     """
@@ -334,6 +339,15 @@ def fit_sequence(
     mu = np.zeros(rig.pose_dim) if prior_mean is None else np.asarray(prior_mean, np.float64)
     if mu.shape != (rig.pose_dim,) or not np.all(np.isfinite(mu)):
         raise ValueError(f"prior_mean must be [{rig.pose_dim}] finite pose parameters, got shape {list(mu.shape)}")
+    if prior_std is None:
+        spread = np.ones(rig.pose_dim)
+    else:
+        sd = np.asarray(prior_std, np.float64)
+        if sd.shape != (rig.pose_dim,) or not np.all(np.isfinite(sd)) or (sd < 0).any():
+            raise ValueError(f"prior_std must be [{rig.pose_dim}] finite values >= 0, got shape {list(sd.shape)}")
+        if not c.prior_std_floor > 0:
+            raise ValueError(f"config.prior_std_floor must be > 0, got {c.prior_std_floor}")
+        spread = np.sqrt(sd**2 + c.prior_std_floor**2)
     kp_idx, jt_idx = joint_map.keypoints, joint_map.joints
     F = keypoints.shape[0]
     uv = torch.as_tensor(keypoints[:, :, kp_idx, :2], dtype=dt)  # [F, C, M, 2]
@@ -362,6 +376,7 @@ def fit_sequence(
     tr = torch.tensor(rt0, dtype=dt, requires_grad=True)
     jt = torch.as_tensor(jt_idx)
     mu_t = torch.as_tensor(mu, dtype=dt)
+    inv_spread = torch.as_tensor(1.0 / spread, dtype=dt)
     offsets = torch.as_tensor(joint_map.rest_offsets(), dtype=dt)
     norm2d = w.sum().clamp_min(1e-9)
     norm3d = wx.sum().clamp_min(1e-9)
@@ -392,7 +407,7 @@ def fit_sequence(
         if with_pose:
             total = (
                 total
-                + c.w_pose * ((pose - mu_t) ** 2).sum(-1).mean()
+                + c.w_pose * (((pose - mu_t) * inv_spread) ** 2).sum(-1).mean()
                 + c.w_limit * (torch.relu(pose.abs() - c.limit) ** 2).sum(-1).mean()
             )
             if F >= 3:
