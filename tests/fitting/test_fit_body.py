@@ -93,7 +93,8 @@ def write_map(tmp_path: Path, joints: dict) -> Path:
     return p
 
 
-def test_fit_recovers_a_hand_made_pose(tmp_path):
+@pytest.mark.parametrize("ramp", [False, True])
+def test_fit_recovers_a_hand_made_pose(tmp_path, ramp):
     import torch
 
     from gsavatar.geometry.lbs import pose_joints
@@ -113,13 +114,20 @@ def test_fit_recovers_a_hand_made_pose(tmp_path):
     J = pose_joints(rig, *(torch.as_tensor(a, dtype=torch.float64) for a in (pose, rr, tr))).numpy()
     kp = synthetic_keypoints(J[:, jm.joints], cams, jm, noise_px=0.0, outlier_fraction=0.0, drop_fraction=0.0)
     tri = triangulate(kp, cams)
-    res = fit_sequence(rig, cams, kp, jm, tri.points, tri.inliers, FitConfig(w_pose=1e-4))
+    res = fit_sequence(rig, cams, kp, jm, tri.points, tri.inliers, FitConfig(w_pose=1e-4, smooth_ramp=ramp))
     Jf = pose_joints(
         rig, *(torch.as_tensor(res[k], dtype=torch.float64) for k in ("pose", "root_rotation", "root_translation"))
     ).numpy()
     err_mm = 1000 * np.linalg.norm(Jf[:, jm.joints] - J[:, jm.joints], axis=-1)
     assert err_mm.mean() < 3.0, err_mm
     assert np.nanmax(res["reprojection_px"]) < 1.0
+    if ramp:  # the ramp's root stage has no smoothness: the same as a fit without it
+        cfg = dict(w_pose=1e-4, steps=0, root_steps=30)
+        a = fit_sequence(rig, cams, kp, jm, tri.points, tri.inliers, FitConfig(**cfg, smooth_ramp=True))
+        b = fit_sequence(rig, cams, kp, jm, tri.points, tri.inliers, FitConfig(**cfg, w_smooth=0.0, w_smooth_pose=0.0))
+        c = fit_sequence(rig, cams, kp, jm, tri.points, tri.inliers, FitConfig(**cfg))
+        np.testing.assert_array_equal(a["root_rotation"], b["root_rotation"])
+        assert np.abs(a["root_rotation"] - c["root_rotation"]).max() > 0  # while the plain root stage has it
 
 
 def test_openpose_and_coco_wholebody_readers(tmp_path):

@@ -109,7 +109,7 @@ class FitBody:
         fit_body(self)
 
 
-FIT_VERSION = 2
+FIT_VERSION = 3
 """Bumped whenever the fit's result for the same inputs changes (shards of another version are refitted)."""
 
 

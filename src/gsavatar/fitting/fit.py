@@ -13,7 +13,8 @@ objective, summed over a shard of frames:
   motion capture on the same rig (``prior_mean``, :mod:`gsavatar.fitting.prior`), ``s`` 1 rad or, with that motion's
   per-parameter spread (``prior_std``), ``sqrt(std^2 + prior_std_floor^2)``; joints no keypoint sees stay near it;
 - joint limits: ``lambda_limit sum relu(|theta| - limit)^2``;
-- temporal smoothness: ``lambda_smooth |J_{t+1} - 2 J_t + J_{t-1}|^2`` (metres) and the same on ``theta``;
+- temporal smoothness: ``lambda_smooth |J_{t+1} - 2 J_t + J_{t-1}|^2`` (metres) and the same on ``theta``
+  (optionally ramped up from 0 over the pose stage, ``smooth_ramp``);
 - silhouette (optional, :class:`Silhouette`; a third stage of ``silhouette_steps`` after the keypoint fit):
   ``lambda_sil mean_{c,n} rho_sil(D_tc(pi_c(V_tn)))`` with ``V_tn`` points of the template's surface posed by
   linear blend skinning and ``D_tc`` the distance (pixels) from the camera's foreground mask, 0 inside: every
@@ -75,6 +76,11 @@ class FitConfig:
     """Joint acceleration weight (per m^2, frames^-4)."""
     w_smooth_pose: float = 0.01
     """Pose acceleration weight (per rad^2)."""
+    smooth_ramp: bool = False
+    """Ramp both smoothness weights from 0 (root stage and first pose step) to their value (half-way through the pose
+    stage; full after, while the learning rate decays): the frames are fitted one by one first and made smooth after
+    (a continuation; strong smoothness from the start couples the frames before they fit, and the fixed step budget
+    then leaves them unconverged). Measured in docs/fit_body.md."""
     w_shape: float = 1e-2
     """Shape prior weight (per unit^2 of beta), when a :class:`ShapeBasis` is fitted."""
     min_confidence: float = 0.1
@@ -395,7 +401,7 @@ def fit_sequence(
     def body() -> RigTensors:
         return rt if betas is None else _shaped_rig(rt, shape, betas)
 
-    def loss(with_pose: bool, with_sil: bool = False) -> Tensor:
+    def loss(with_pose: bool, with_sil: bool = False, smooth: float = 1.0) -> Tensor:
         J = keypoint_points(body(), jt, offsets, pose if with_pose else pose.detach(), rr, tr)  # [F, M, 3]
         pix, z = _project(J, Ks, Rs, Ts, ds)
         sq = ((pix - uv) ** 2).sum(-1)
@@ -403,7 +409,7 @@ def fit_sequence(
         l3d = (wx * geman_mcclure(((J - X) ** 2).sum(-1), c.sigma_m)).sum() / norm3d * f2 * c.w_3d
         total = l2d + l3d
         if F >= 3:
-            total = total + c.w_smooth * f2 * ((J[2:] - 2 * J[1:-1] + J[:-2]) ** 2).sum(-1).mean()
+            total = total + smooth * c.w_smooth * f2 * ((J[2:] - 2 * J[1:-1] + J[:-2]) ** 2).sum(-1).mean()
         if with_pose:
             total = (
                 total
@@ -411,7 +417,7 @@ def fit_sequence(
                 + c.w_limit * (torch.relu(pose.abs() - c.limit) ** 2).sum(-1).mean()
             )
             if F >= 3:
-                total = total + c.w_smooth_pose * ((pose[2:] - 2 * pose[1:-1] + pose[:-2]) ** 2).sum(-1).mean()
+                total = total + smooth * c.w_smooth_pose * ((pose[2:] - 2 * pose[1:-1] + pose[:-2]) ** 2).sum(-1).mean()
             if betas is not None:
                 total = total + c.w_shape * (betas**2).sum()
             if with_sil:
@@ -430,9 +436,12 @@ def fit_sequence(
             continue
         opt = torch.optim.Adam(params, lr=c.lr)
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=c.lr * 0.05)
-        for _ in range(steps):
+        for i in range(steps):
             opt.zero_grad(set_to_none=True)
-            loss(stage >= 1, with_sil).backward()
+            smooth = 1.0
+            if c.smooth_ramp and not with_sil:  # the silhouette stage comes after the ramp: full weights
+                smooth = 0.0 if stage == 0 else min(1.0, 2.0 * i / max(steps, 1))
+            loss(stage >= 1, with_sil, smooth).backward()
             opt.step()
             sched.step()
             done += 1
