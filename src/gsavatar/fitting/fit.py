@@ -14,7 +14,7 @@ objective, summed over a shard of frames:
   per-parameter spread (``prior_std``), ``sqrt(std^2 + prior_std_floor^2)``; joints no keypoint sees stay near it;
 - joint limits: ``lambda_limit sum relu(|theta| - limit)^2``;
 - temporal smoothness: ``lambda_smooth |J_{t+1} - 2 J_t + J_{t-1}|^2`` (metres) and the same on ``theta``
-  (optionally ramped up from 0 over the pose stage, ``smooth_ramp``);
+  (optionally ramped up from 0 over the first half of the pose stage, ``smooth_ramp``);
 - silhouette (optional, :class:`Silhouette`; a third stage of ``silhouette_steps`` after the keypoint fit):
   ``lambda_sil mean_{c,n} rho_sil(D_tc(pi_c(V_tn)))`` with ``V_tn`` points of the template's surface posed by
   linear blend skinning and ``D_tc`` the distance (pixels) from the camera's foreground mask, 0 inside: every
@@ -73,9 +73,9 @@ class FitConfig:
     limit: float = 2.6
     """|theta| beyond this (radians) is penalised."""
     w_smooth: float = 0.1
-    """Joint acceleration weight (per m^2, frames^-4)."""
+    """Joint acceleration weight (per m^2, frames^-4; detector keypoints: 1.0 with ``smooth_ramp``, fit_body.md)."""
     w_smooth_pose: float = 0.01
-    """Pose acceleration weight (per rad^2)."""
+    """Pose acceleration weight (per rad^2; with detector keypoints 0.1 and ``smooth_ramp``)."""
     smooth_ramp: bool = False
     """Ramp both smoothness weights from 0 (root stage and first pose step) to their value (half-way through the pose
     stage; full after, while the learning rate decays): the frames are fitted one by one first and made smooth after
