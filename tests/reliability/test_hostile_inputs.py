@@ -484,3 +484,27 @@ def test_exif_orientation_of_jpeg_images_is_applied(env, capsys):
         textures[name] = np.load(ds / "project_uv/shard-00000.npz")["texture"].astype(np.float32)
     err = {k: float(np.abs(textures[k] - textures["upright"]).mean()) for k in ("rot", "ignored")}
     assert err["rot"] < 0.1 * err["ignored"], err  # JPEG blocks differ once rotated: equal up to compression
+
+
+def test_ctrl_c_while_a_checkpoint_is_written_words_the_hint_then(tmp_path, capsys):
+    """A trainer replacing latest.pt sets a hint that is worded when Ctrl-C comes: the first save interrupted before its
+    file exists says "starts from step 0", one interrupted after says "resume" (the race the test above can hit)."""
+    from gsavatar.runs.checkpoint import resume_hint
+    from gsavatar.utils.cli import EXIT_INTERRUPTED, run_reporting_errors, set_resume_hint
+
+    ckpt = tmp_path / "latest.pt"
+
+    def interrupted(write: bool):
+        def fn():
+            set_resume_hint(lambda: resume_hint(ckpt, None))
+            if write:
+                ckpt.write_bytes(b"x")
+            raise KeyboardInterrupt
+
+        return fn
+
+    assert run_reporting_errors(interrupted(False)) == EXIT_INTERRUPTED
+    assert "starts from step 0" in capsys.readouterr().err
+    assert run_reporting_errors(interrupted(True)) == EXIT_INTERRUPTED
+    err = capsys.readouterr().err
+    assert "resume from its last checkpoint" in err and str(ckpt) in err

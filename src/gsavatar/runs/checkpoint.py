@@ -50,9 +50,12 @@ def save_checkpoint(
     atomic_write_bytes(path, buf.getbuffer())
 
 
-def resume_hint(ckpt: Path, step: int) -> str:
-    """What a command says about resuming when it is interrupted (Ctrl-C, disk full)."""
+def resume_hint(ckpt: Path, step: int | None) -> str:
+    """What a command says about resuming when it is interrupted (Ctrl-C, disk full); ``step`` None: the step of the
+    checkpoint on disk is not known (it is being replaced)."""
     if Path(ckpt).exists():
+        if step is None:
+            return f"re-run the same command to resume from its last checkpoint ({ckpt})"
         return f"re-run the same command to resume from step {step} ({ckpt})"
     return "no checkpoint yet: re-running the same command starts from step 0"
 

@@ -533,6 +533,8 @@ class PredictorTrainer:
         modules = {"predictor": self.result}
         if self.average is not None:
             modules["predictor_train"] = self.model
+        # while latest.pt is replaced a Ctrl-C may find the old one, the new one or (first save) none
+        set_resume_hint(lambda: resume_hint(self.ckpt, None))
         save_checkpoint(self.ckpt, step=self.step, config=self.config, modules=modules, optimizer=self.optim)
         set_resume_hint(resume_hint(self.ckpt, self.step))
 

@@ -21,12 +21,14 @@ PATH_ERRORS = (FileNotFoundError, FileExistsError, NotADirectoryError, IsADirect
 
 EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED = 2, 1, 130
 
-_RESUME_HINT: list[str] = []
+_RESUME_HINT: list[str | Callable[[], str]] = []
 """What the running command says about resuming after a fault or Ctrl-C (set by resumable commands)."""
 
 
-def set_resume_hint(text: str) -> None:
-    """Replace the running command's resume hint, e.g. ``"re-run the same command to resume from step 400"``."""
+def set_resume_hint(text: str | Callable[[], str]) -> None:
+    """Replace the running command's resume hint, e.g. ``"re-run the same command to resume from step 400"``, or a
+    function that words it when it is needed (while a checkpoint is being written, whether it exists yet is only
+    known then)."""
     _RESUME_HINT[:] = [text]
 
 
@@ -58,7 +60,10 @@ def describe_no_space(e: OSError) -> str:
 
 
 def _hint() -> str:
-    return f"; {_RESUME_HINT[0]}" if _RESUME_HINT else ""
+    if not _RESUME_HINT:
+        return ""
+    h = _RESUME_HINT[0]
+    return f"; {h() if callable(h) else h}"
 
 
 def run_reporting_errors(fn: Callable[[], object]) -> int:
