@@ -127,7 +127,10 @@ def test_torchrun_two_gloo_ranks_equal_one(cap, tmp_path):
         env=env,
         timeout=300,
     )
-    assert r.returncode == 0, r.stderr[-2000:]
+    # the ranks' own "error: ..." lines come before torchrun's long trailer: keep them in the message (a flake on a
+    # loaded box once exited 2 with only the trailer shown)
+    errors = [ln for ln in r.stderr.splitlines() if "error:" in ln.lower() or "interrupted" in ln]
+    assert r.returncode == 0, "\n".join(errors[:20]) + "\n...\n" + r.stderr[-1500:]
     a, b = _shards(one), _shards(two)
     assert sorted(a) == sorted(b) and all(np.array_equal(a[f], b[f]) for f in a)
     assert verify_dataset(two) == []
