@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from scipy.ndimage import gaussian_filter1d
+from scipy.spatial.transform import Rotation
 
 VARIANTS = ("control", "low", "high", "filtered", "savgol")
 
@@ -56,50 +57,24 @@ def savgol(x: np.ndarray, window: int) -> np.ndarray:
 def smooth_rotations(aa: np.ndarray, sigma: float, filt=None) -> np.ndarray:
     """Low-pass of axis-angle rotations via sign-aligned quaternions (``filt``: another filter of [F, 4]
     arrays instead of the Gaussian). [F, 3] -> [F, 3]"""
-    ang = np.linalg.norm(aa, axis=-1, keepdims=True)
-    axis = np.where(ang > 1e-12, aa / np.maximum(ang, 1e-12), 0.0)
-    q = np.concatenate([np.cos(ang / 2), np.sin(ang / 2) * axis], -1)  # [F, 4] (w, x, y, z)
+    q = Rotation.from_rotvec(aa).as_quat()  # [F, 4]
     for t in range(1, len(q)):  # continuous sign
         if q[t] @ q[t - 1] < 0:
             q[t] = -q[t]
-    q = lowpass(q, sigma) if filt is None else filt(q)
-    q /= np.linalg.norm(q, axis=-1, keepdims=True)
-    w, v = q[:, :1], q[:, 1:]
-    s = np.linalg.norm(v, axis=-1, keepdims=True)
-    return 2 * np.arctan2(s, w) * np.where(s > 1e-12, v / np.maximum(s, 1e-12), 0.0)
-
-
-def rotation_error(fit: np.ndarray, true: np.ndarray) -> np.ndarray:
-    """Axis-angle of R_fit R_true^T. [F, 3], [F, 3] -> [F, 3]"""
-    from gsavatar.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-
-    d = lambda a: axis_angle_to_matrix(torch.as_tensor(a, dtype=torch.float64))  # noqa: E731
-    return matrix_to_axis_angle(d(fit) @ d(true).transpose(-1, -2)).numpy()
-
-
-def compose(err: np.ndarray, true: np.ndarray) -> np.ndarray:
-    """Axis-angle of exp(err) R_true. -> [F, 3]"""
-    from gsavatar.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-
-    d = lambda a: axis_angle_to_matrix(torch.as_tensor(a, dtype=torch.float64))  # noqa: E731
-    return matrix_to_axis_angle(d(err) @ d(true)).numpy()
+    return Rotation.from_quat(lowpass(q, sigma) if filt is None else filt(q)).as_rotvec()  # from_quat normalises
 
 
 def split_pose(rig, true_pose: np.ndarray, fit_pose: np.ndarray, part) -> np.ndarray:
     """True pose with ``part`` of the fit's joint-local rotation error (module docstring). -> [F, P]"""
-    from scipy.spatial.transform import Rotation
-
     from gsavatar.geometry.lbs import pose_to_local_rotations
-    from gsavatar.motion.rig_pose import pose_from_local_rotations
+    from gsavatar.motion.rig_pose import pose_near_local_rotations
 
     L = lambda p: pose_to_local_rotations(torch.as_tensor(p, dtype=torch.float64), rig).numpy()  # noqa: E731
     Lt, Lf = L(true_pose), L(fit_pose)  # [F, J, 3, 3]
     F, J = Lt.shape[:2]
     e = Rotation.from_matrix((Lf @ Lt.transpose(0, 1, 3, 2)).reshape(-1, 3, 3)).as_rotvec().reshape(F, J, 3)
     Ln = Rotation.from_rotvec(part(e).reshape(-1, 3)).as_matrix().reshape(F, J, 3, 3) @ Lt
-    both = np.empty((2 * F, J, 3, 3))
-    both[0::2], both[1::2] = Lt, Ln  # Euler angles continuous from the true frame: the branch nearest the truth
-    return pose_from_local_rotations(both, rig)[1::2]
+    return pose_near_local_rotations(Ln, Lt, rig)  # the Euler branch nearest the truth's
 
 
 def variant_motion(true, fit, name: str, sigma: float, window: int = 9, rig=None):
@@ -119,11 +94,12 @@ def variant_motion(true, fit, name: str, sigma: float, window: int = 9, rig=None
             fit.face,
         )
     e_trans = fit.root_translation - true.root_translation
-    e_rot = rotation_error(fit.root_rotation, true.root_rotation)
+    R_true = Rotation.from_rotvec(true.root_rotation)
+    e_rot = (Rotation.from_rotvec(fit.root_rotation) * R_true.inv()).as_rotvec()  # R_fit R_true^T
     part = (lambda e: lowpass(e, sigma)) if name == "low" else (lambda e: e - lowpass(e, sigma))
     return Motion(
         split_pose(rig, true.pose, fit.pose, part),
-        compose(part(e_rot), true.root_rotation),
+        (Rotation.from_rotvec(part(e_rot)) * R_true).as_rotvec(),
         true.root_translation + part(e_trans),
         fit.face,
     )

@@ -69,18 +69,14 @@ def canonical_poses(poses: np.ndarray, rig) -> np.ndarray:
     import torch
 
     from gsavatar.geometry.lbs import pose_to_local_rotations
-    from gsavatar.motion.rig_pose import pose_from_local_rotations
+    from gsavatar.motion.rig_pose import pose_near_local_rotations
 
     L = pose_to_local_rotations(torch.as_tensor(poses, dtype=torch.float64), rig).numpy()  # [F, J, 3, 3]
     U, _, Vt = np.linalg.svd(L.sum(0))
     D = np.ones(U.shape[:-1])
     D[:, -1] = np.sign(np.linalg.det(U @ Vt))
     M = (U * D[:, None, :]) @ Vt  # [J, 3, 3] chordal mean of each joint
-    # pose_from_local_rotations keeps Euler angles continuous from frame to frame: with the mean before every frame,
-    # each frame takes the branch nearest the mean's (principal) angles
-    both = np.empty((2 * len(L),) + L.shape[1:])
-    both[0::2], both[1::2] = M, L
-    return pose_from_local_rotations(both, rig)[1::2]
+    return pose_near_local_rotations(L, M, rig)  # the mean's own angles: the principal branch
 
 
 def pose_prior_stats(paths, rig) -> tuple[np.ndarray, np.ndarray, dict]:

@@ -157,3 +157,13 @@ def pose_from_local_rotations(L: np.ndarray, rig: Rig) -> np.ndarray:
         for k, (_, slots, signs, _) in enumerate(items):
             pose[:, slots] = e[:, k] * signs
     return pose
+
+
+def pose_near_local_rotations(L: np.ndarray, ref: np.ndarray, rig: Rig) -> np.ndarray:
+    """:func:`pose_from_local_rotations` of L, every frame's Euler angles the branch and 2 pi shift nearest those of
+    its reference rotations (one pose for all frames or one per frame): the references are interleaved before the
+    frames, and the continuity over time picks the nearest. L [F, J, 3, 3], ref [J, 3, 3] or [F, J, 3, 3] -> [F, P]"""
+    L = np.asarray(L, dtype=np.float64)
+    both = np.empty((2 * len(L),) + L.shape[1:])
+    both[0::2], both[1::2] = ref, L
+    return pose_from_local_rotations(both, rig)[1::2]
