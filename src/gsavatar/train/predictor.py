@@ -347,7 +347,7 @@ def burn_in_context(
     """
     dev = data.pose.device
     first, seg_start = first.to(dev), seg_start.to(dev)
-    prefix = torch.maximum(first[:, None] - burn_in + torch.arange(burn_in, device=dev), seg_start[:, None])
+    prefix = history_index(first - 1, seg_start, burn_in)  # frames first - burn_in .. first - 1, clamped
     return unroll(model, data, prefix, seg_start, ctx0)[:, -1]
 
 
@@ -533,10 +533,7 @@ class PredictorTrainer:
         modules = {"predictor": self.result}
         if self.average is not None:
             modules["predictor_train"] = self.model
-        # while latest.pt is replaced a Ctrl-C may find the old one, the new one or (first save) none
-        set_resume_hint(lambda: resume_hint(self.ckpt, None))
         save_checkpoint(self.ckpt, step=self.step, config=self.config, modules=modules, optimizer=self.optim)
-        set_resume_hint(resume_hint(self.ckpt, self.step))
 
     def loss(self, step: int) -> tuple[Tensor, dict[str, float]]:
         """Summed dual-context (+ InitialLatentNet) losses of every member, each on its own windows; logs are the
