@@ -487,8 +487,9 @@ def test_exif_orientation_of_jpeg_images_is_applied(env, capsys):
 
 
 def test_ctrl_c_while_a_checkpoint_is_written_words_the_hint_then(tmp_path, capsys):
-    """A trainer replacing latest.pt sets a hint that is worded when Ctrl-C comes: the first save interrupted before its
-    file exists says "starts from step 0", one interrupted after says "resume" (the race the test above can hit)."""
+    """save_checkpoint, replacing latest.pt, sets a hint that is worded when Ctrl-C comes: the first save interrupted
+    before its file exists says "starts from step 0", one interrupted after says "resume" (the race the test above
+    can hit)."""
     from gsavatar.runs.checkpoint import resume_hint
     from gsavatar.utils.cli import EXIT_INTERRUPTED, run_reporting_errors, set_resume_hint
 

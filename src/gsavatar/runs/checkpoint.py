@@ -17,6 +17,7 @@ from pathlib import Path
 
 import torch
 
+from gsavatar.utils.cli import set_resume_hint
 from gsavatar.utils.errors import SchemaError
 from gsavatar.utils.io import atomic_write_bytes
 from gsavatar.utils.jsonio import is_int, parse_json_text
@@ -34,6 +35,11 @@ def save_checkpoint(
     optimizer: torch.optim.Optimizer | None,
     extra: dict | None = None,
 ) -> None:
+    """Write the checkpoint atomically and keep the command's resume hint true (:func:`resume_hint`): while ``path``
+    is replaced a Ctrl-C may find the old file, the new one or (first save) none, so the hint is worded then; after,
+    it names ``step``."""
+    path = Path(path)
+    set_resume_hint(lambda: resume_hint(path, None))
     state = {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
@@ -48,6 +54,7 @@ def save_checkpoint(
     buf = io.BytesIO()
     torch.save(state, buf)
     atomic_write_bytes(path, buf.getbuffer())
+    set_resume_hint(resume_hint(path, step))
 
 
 def resume_hint(ckpt: Path, step: int | None) -> str:

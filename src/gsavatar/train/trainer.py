@@ -131,12 +131,9 @@ class Trainer:
     def save(self) -> None:
         if self.rank != 0:
             return
-        # while latest.pt is replaced a Ctrl-C may find the old one, the new one or (first save) none
-        set_resume_hint(lambda: resume_hint(self.ckpt, None))
         save_checkpoint(
             self.ckpt, step=self.step, config=self.config_json(), modules={"net": self.net}, optimizer=self.optim
         )
-        set_resume_hint(resume_hint(self.ckpt, self.step))
 
     # ------------------------------------------------------------------ one step
     def sh_degree(self, step: int) -> int:
