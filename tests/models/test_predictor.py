@@ -15,6 +15,7 @@ from gsavatar.models.predictor import (
     fit_latent_pca,
     heading_frame,
     latent_pca_project,
+    memory_features,
     relative_root_motion,
     window_features,
 )
@@ -352,3 +353,51 @@ def test_joint_token_predictor_rebuilds_from_its_state_dict():
     )
     with pytest.raises(ValueError, match="kinematics"):
         AppearancePredictor(m.config, A, [0], m.pose_dim)
+
+
+def test_memory_features_against_a_naive_loop_and_closed_forms():
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(2, 7, 3, generator=g, dtype=torch.float64)
+    taus = (2.0, 5.0)
+    f = memory_features(x, taus)
+    assert f.shape == (2, 3, 6)
+    for b in range(2):
+        for s in range(3):
+            for i, tau in enumerate(taus):
+                w = [torch.exp(torch.tensor(-k / tau, dtype=torch.float64)) for k in range(7)]  # k frames back
+                val = sum(w[k] * x[b, 6 - k, s] for k in range(7)) / sum(w)
+                d = [x[b, 6 - k, s] - x[b, 5 - k, s] for k in range(6)]
+                spd = sum(w[k] * abs(d[k]) for k in range(6)) / sum(w[:6])
+                vel = sum(w[k] * d[k] for k in range(6)) / sum(w[:6])
+                torch.testing.assert_close(f[b, s, 3 * i : 3 * i + 3], torch.stack([val, spd, vel]))
+    # a stationary past (a sequence start repeats its first frame): the value, no speed, no velocity
+    c = memory_features(torch.full((1, 9, 1), 0.7), (4.0,))[0, 0]
+    torch.testing.assert_close(c, torch.tensor([0.7, 0.0, 0.0]))
+    # a ramp of slope 0.25 per frame: speed and velocity are the slope
+    r = memory_features((0.25 * torch.arange(9.0))[None, :, None], (4.0,))[0, 0]
+    torch.testing.assert_close(r[1:], torch.tensor([0.25, 0.25]))
+
+
+def test_memory_timescales_widen_the_window_and_keep_streaming_exact():
+    m = model(memory_timescales=(2.0, 3.0))
+    W = m.config.window_frames
+    assert W == 9 and m.feature_dim == 3 * N - 3 + 6
+    pose, rot, trans = seq(14)
+    init = torch.randn(A, L)
+    roll = m.rollout(pose, rot, trans, init)
+    prev, ref = init[None], []
+    for t in range(14):
+        idx = torch.clamp(torch.arange(t - W + 1, t + 1), min=0)
+        prev = m(pose[idx][None], rot[idx][None], trans[idx][None], prev)
+        ref.append(prev[0])
+    torch.testing.assert_close(torch.stack(ref), roll, atol=1e-5, rtol=1e-5)
+    # causal, and a frame W - 1 back still matters (N_b alone would not see it)
+    t = 12
+    p2 = pose.clone()
+    p2[t - W + 1] += 0.7
+    idx = torch.clamp(torch.arange(t - W + 1, t + 1), min=0)
+    a = m(pose[idx][None], rot[idx][None], trans[idx][None], init[None])
+    b = m(p2[idx][None], rot[idx][None], trans[idx][None], init[None])
+    assert not torch.allclose(a, b)
+    with pytest.raises(ValueError, match="memory_timescales"):
+        model(memory_timescales=(0.0,))

@@ -78,6 +78,13 @@ class PredictorConfig:
     velocities: bool = True
     """Token features are the window's values, velocities and accelerations (the paper's); False: values only
     (with ``history=1`` the no-history ablation: the current pose alone)."""
+    memory_timescales: tuple[float, ...] = ()
+    """Beyond the paper (empty = the paper's tokens): time constants tau, in frames, of causal exponential
+    averages over a longer pose history that every pose token also gets, three per tau: the averaged value,
+    |velocity| and velocity, ``sum_k w_k x_{t-k} / sum_k w_k`` with ``w_k = exp(-k / tau)`` over the last
+    ``ceil(3 max tau)`` frames (:func:`memory_features`). Appearance that motion history causes (sweat after
+    sustained effort, cloth settling) depends on seconds of motion, the paper's window on N_b = 10 frames; a
+    fixed filter bank gives that memory without more parameters per frame. Measured in docs/train.md."""
     width: int = 128
     """Token (embedding) dimension (paper: 128)."""
     heads: int = 4
@@ -122,6 +129,12 @@ class PredictorConfig:
     """Build the pose-conditioned :class:`InitialLatentNet` (beyond the paper)."""
     initial_hidden: int = 128
     """Hidden width of the InitialLatentNet (two hidden layers)."""
+
+    @property
+    def window_frames(self) -> int:
+        """Pose frames a prediction reads, the current one included: ``max(N_b, ceil(3 max tau))``."""
+        longest = max(self.memory_timescales, default=0.0)
+        return max(self.history, math.ceil(3.0 * longest))
 
     def to_json(self) -> dict:
         """Plain-JSON form (the predictor checkpoint's config, checked on resume)."""
@@ -206,6 +219,30 @@ def window_features(x: Tensor) -> Tensor:
     v = x[:, 1:] - x[:, :-1]  # [B, N-1, S]
     a = v[:, 1:] - v[:, :-1]  # [B, N-2, S]
     return torch.cat([x, v, a], 1).transpose(1, 2)
+
+
+def memory_features(x: Tensor, timescales: Sequence[float]) -> Tensor:
+    """Causal exponential averages of every slot's value, |velocity| and velocity over the window.
+
+    Frame ``t`` is the window's last; weights ``w_k = exp(-k / tau)`` for the frame ``k`` frames back, normalised
+    over the frames present (velocities: the ``W - 1`` backward differences). A window that repeats its first
+    frame (a sequence start) gives that frame's value and zero velocity, like a stationary past.
+    x [B, W, S] -> [B, S, 3 M] (per tau: value, |velocity|, velocity; taus in the given order)
+    """
+    W = x.shape[1]
+    v = x[:, 1:] - x[:, :-1]  # [B, W-1, S]
+    out = []
+    for tau in timescales:
+        k = torch.arange(W - 1, -1, -1, dtype=torch.float64, device=x.device)  # frames back, oldest first
+        w = torch.exp(-k / float(tau))
+        wx = (w / w.sum()).to(x)  # [W]
+        if W > 1:
+            wv = (w[1:] / w[1:].sum()).to(x)  # [W-1]
+            speed, vel = torch.einsum("bws,w->bs", v.abs(), wv), torch.einsum("bws,w->bs", v, wv)
+        else:
+            speed = vel = torch.zeros_like(x[:, 0])
+        out += [torch.einsum("bws,w->bs", x, wx), speed, vel]
+    return torch.stack(out, -1)  # [B, S, 3M]
 
 
 def sinusoidal_encoding(n: int, dim: int) -> Tensor:
@@ -298,7 +335,7 @@ class _Streaming:
     ) -> RolloutState:
         """History = the first frame repeated N_b times; previous latents = ``init_latents`` [A, L]
         or, when None, :meth:`initial_latents` (the trained InitialLatentNet, else zeros)."""
-        N = self.config.history
+        N = self.config.window_frames
         _check("first_pose", first_pose, (self.pose_dim,))
         _check("first_root_rot", first_root_rot, (3,))
         _check("first_root_trans", first_root_trans, (3,))
@@ -419,7 +456,11 @@ class AppearancePredictor(_Streaming, nn.Module):
         A, L, D = self.num_anchors, c.latent_dim, c.width
         K = c.latent_pca_components if c.latent_pca == "anchor" else 0
         S = int(slots.numel()) + ROOT_SLOTS
-        Fdim = 3 * c.history - 3 if c.velocities else c.history
+        if any(not (math.isfinite(float(t)) and float(t) > 0) for t in c.memory_timescales):
+            raise ValueError(f"config.memory_timescales must be positive frame counts, got {c.memory_timescales}")
+        if c.memory_timescales and c.joint_tokens:
+            raise ValueError("config.memory_timescales and config.joint_tokens cannot be combined (not implemented)")
+        Fdim = (3 * c.history - 3 if c.velocities else c.history) + 3 * len(c.memory_timescales)
         self.chain: KinematicChain | None = None
         if c.joint_tokens:
             if kinematics is None:
@@ -495,8 +536,13 @@ class AppearancePredictor(_Streaming, nn.Module):
 
     def features(self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor) -> Tensor:
         """Raw (unnormalised) token features. -> [B, S, 3N-3] (values only: [B, S, N])"""
-        x = self.slot_values(pose_window, root_rot_window, root_trans_window)
-        return window_features(x) if self.config.velocities else x.transpose(1, 2)
+        c = self.config
+        x = self.slot_values(pose_window, root_rot_window, root_trans_window)  # [B, W, S]
+        recent = x[:, -c.history :]
+        f = window_features(recent) if c.velocities else recent.transpose(1, 2)
+        if c.memory_timescales:
+            f = torch.cat([f, memory_features(x, c.memory_timescales)], -1)
+        return f
 
     def joint_features(self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor) -> Tensor:
         """Raw joint-token features (``config.joint_tokens``): every joint's heading-frame position over the
@@ -504,6 +550,9 @@ class AppearancePredictor(_Streaming, nn.Module):
         accelerations of x, y, z. [B, N, P], [B, N, 3], [B, N, 3] -> [B, J, 3 (3N-3)] (values only: [B, J, 3N])"""
         if self.chain is None:
             raise ValueError("joint_features needs config.joint_tokens")
+        N = self.config.history  # the paper's window (memory features are pose-slot only)
+        pose_window, root_rot_window = pose_window[:, -N:], root_rot_window[:, -N:]
+        root_trans_window = root_trans_window[:, -N:]
         B, N, P = pose_window.shape
         if self._rig.heads.device != pose_window.device:  # built on the CPU; follow the inputs
             self._rig = RigTensors(self.chain, pose_window.device)
@@ -607,7 +656,7 @@ class AppearancePredictor(_Streaming, nn.Module):
         root_trans_window [B, N_b, 3], prev_latents [B, A, L] (frame t-1) -> [B, A, L] (clamped).
         ``feature_noise`` [B, S, F] (training only): added to the standardised pose-token features.
         """
-        N, A, L = self.config.history, self.num_anchors, self.config.latent_dim
+        N, A, L = self.config.window_frames, self.num_anchors, self.config.latent_dim
         _check("pose_window", pose_window, (None, N, self.pose_dim))
         B = pose_window.shape[0]
         _check("root_rot_window", root_rot_window, (B, N, 3))

@@ -261,7 +261,7 @@ def unroll(
     standardised pose-token features get ``feature_noise * N(0, 1)`` (from ``gen``).
     """
     dev = data.pose.device
-    hist = history_index(rows.to(dev), seg_start.to(dev)[:, None], model.config.history)  # [B, T, N_b]
+    hist = history_index(rows.to(dev), seg_start.to(dev)[:, None], model.config.window_frames)  # [B, T, W]
     pose, rr, rt = data.pose[hist], data.root_rotation[hist], data.root_translation[hist]
     prev, out = ctx0, []
     for k in range(rows.shape[1]):
@@ -387,7 +387,7 @@ def prepare_model(
     """Fit the input normalisation (all train frames' windows) and the latent PCA (train targets)."""
     rows = torch.cat([torch.arange(s, e) for s, e in segments]).to(data.pose.device)
     starts = torch.cat([torch.full((e - s,), s) for s, e in segments]).to(data.pose.device)
-    hist = history_index(rows, starts, model.config.history)  # [n, N_b]
+    hist = history_index(rows, starts, model.config.window_frames)  # [n, W]
     parts = [
         model.input_features(data.pose[h], data.root_rotation[h], data.root_translation[h]) for h in hist.split(chunk)
     ]
