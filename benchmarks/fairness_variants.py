@@ -8,7 +8,10 @@ Rows (R^2 on the test frames pooled over the standardised states, each state its
 ``stacked``: the last 10 frames' PCA features stacked (the check before 2026-12-04, alphas up to 1e4);
 ``stacked_wide``: the same with alphas up to 1e7; ``changes``: frame t and the 9 frame-to-frame changes (the
 check now, :func:`gsavatar.synth.fairness.history_features`); ``changes_squared``: that plus every column squared
-(and the pose-only features squared too), a second-order lift that could express speeds.
+(and the pose-only features squared too), a second-order lift that could express speeds; ``changes_memory``:
+``changes`` plus the predictor's memory features (:func:`gsavatar.models.predictor.memory_features`, time
+constants 3, 10, 30 frames over the last 90: exponential averages of the value, |velocity| and velocity of every
+feature), the history the ``--model.memory-timescales`` predictor option adds.
 """
 
 from __future__ import annotations
@@ -18,8 +21,19 @@ import json
 from pathlib import Path
 
 import numpy as np
+import torch
 
+from gsavatar.models.predictor import memory_features
 from gsavatar.synth import fairness as fair
+
+MEMORY_TIMESCALES = (3.0, 10.0, 30.0)
+
+
+def memory_columns(z: np.ndarray, timescales=MEMORY_TIMESCALES) -> np.ndarray:
+    """Every row's memory features over its ``ceil(3 max tau)``-frame window (clamped at row 0). [F, D] -> [F, 3MD]"""
+    W = int(np.ceil(3 * max(timescales)))
+    win = fair.stack_history(z, W).reshape(len(z), W, -1)  # oldest first
+    return memory_features(torch.from_numpy(win), timescales).reshape(len(z), -1).numpy()
 
 
 def _score(X: np.ndarray, y: np.ndarray, train: np.ndarray, test: np.ndarray, alphas) -> dict:
@@ -45,6 +59,7 @@ def main() -> None:
             "stacked_wide": (z, stacked, wide),
             "changes": (z, changes, wide),
             "changes_squared": (sq(z), sq(changes), wide),
+            "changes_memory": (z, np.concatenate([changes, memory_columns(z)], 1), wide),
         }
         out[str(cap)] = {
             k: {"pose_only": _score(a_, y, train, test, al), "history": _score(b_, y, train, test, al)}
