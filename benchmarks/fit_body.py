@@ -168,7 +168,12 @@ def main() -> None:
     ap.add_argument("--fitted-name", default="fitted", help="folder of the fitted capture under --work")
     ap.add_argument("--preset", default="tiny", help="avatar-train preset of --train's two avatars")
     ap.add_argument("--seed", type=int, default=0, help="seed of the keypoints' noise, outliers and drops")
-    ap.add_argument("--joint-map", type=Path, default=None, help="a keypoint -> joint map file (keypoints and fit)")
+    ap.add_argument(
+        "--joint-map",
+        type=Path,
+        default=None,
+        help="a keypoint -> joint map file or packaged map name, e.g. body25_hands (keypoints and fit)",
+    )
     a = ap.parse_args()
 
     from gsavatar.data_schema import load_capture

@@ -11,7 +11,7 @@ import pytest
 
 from gsavatar.data_schema.capture import Camera
 from gsavatar.fitting.fit import FitConfig, fit_sequence, posed_keypoints
-from gsavatar.fitting.keypoints import load_joint_map, read_keypoint_file, read_keypoints
+from gsavatar.fitting.keypoints import load_joint_map, packaged_joint_maps, read_keypoint_file, read_keypoints
 from gsavatar.fitting.synthetic import synthetic_keypoints, write_openpose
 from gsavatar.fitting.triangulate import camera_arrays, dlt, normalized_coords, project_world, triangulate
 from gsavatar.geometry.camera import look_at
@@ -548,12 +548,13 @@ def test_body25_maps_may_list_the_body_only_and_hands_index_after_it(tmp_path):
 
 
 def test_the_documented_hand_map_loads_on_the_synthetic_body(tiny_capture):
-    """docs/maps/body25_hands.json (the opt-in hand points of docs/fit_body.md) maps all its keypoints on anny."""
+    """The packaged map ``body25_hands`` (the opt-in hand points of docs/fit_body.md) maps all its keypoints on
+    anny, by name as ``--joint-map body25_hands``."""
     from gsavatar.data_schema import load_capture
 
     cap = load_capture(tiny_capture)
-    path = Path(__file__).resolve().parents[2] / "docs" / "maps" / "body25_hands.json"
-    jm = load_joint_map("body25", cap.rig, path, template=cap.template)
+    assert {"body25", "body25_hands", "coco_wholebody"} <= set(packaged_joint_maps())
+    jm = load_joint_map("body25", cap.rig, "body25_hands", template=cap.template)
     default = load_joint_map("body25", cap.rig, template=cap.template)
     assert len(jm.names) == len(default.names) + 6 and {"hand_left_9", "hand_right_4"} <= set(jm.names)
     assert set(jm.keypoints[len(default.names) :]) <= set(range(25, 67))  # from the hand arrays
@@ -721,3 +722,20 @@ def test_fit_body_pose_prior_from_bvh_is_reported_and_refits(tiny_capture, tiny_
     bad = tmp_path / "bad"
     assert run_fit(tiny_capture, kdir, bad, "--pose-prior", str(tmp_path / "none.bvh")) != 0
     assert "none.bvh" in capsys.readouterr().err and not bad.exists()
+
+
+def test_joint_map_names_files_first_and_clear_errors(tmp_path, monkeypatch):
+    """``--joint-map NAME``: an existing file of that name wins over the packaged map; an unknown name, a folder
+    and a packaged map of another format are refused naming the map."""
+    rig, jmap = arm_setup()
+    monkeypatch.chdir(tmp_path)
+    own = write_map(tmp_path, jmap)
+    Path("body25_hands").write_text(own.read_text())  # a user's file that happens to carry the packaged name
+    assert load_joint_map("body25", rig, "body25_hands").names == load_joint_map("body25", rig, own).names
+    with pytest.raises(SchemaError, match="packaged maps by name: .*body25_hands"):
+        load_joint_map("body25", rig, "no_such_map")
+    Path("a_folder").mkdir()
+    with pytest.raises(SchemaError, match="a_folder.*cannot be read"):
+        load_joint_map("body25", rig, "a_folder")
+    with pytest.raises(SchemaError, match="coco_wholebody.json.*is a map for 'coco_wholebody'"):
+        load_joint_map("body25", rig, "coco_wholebody")

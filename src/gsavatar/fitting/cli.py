@@ -70,7 +70,8 @@ class FitBody:
     format: Literal["auto", "body25", "coco_wholebody"] = "auto"
     """Keypoint format; ``auto`` reads it from the first file."""
     joint_map: Path | None = None
-    """JSON keypoint -> rig joint map replacing the package's one for the format (``gsavatar/fitting/maps``)."""
+    """Keypoint -> rig joint map replacing the package's one for the format: a JSON file, or the name of a packaged
+    map (``body25_hands``: BODY_25 plus OpenPose's hand points, docs/fit_body.md)."""
     shard_frames: int = 100
     """Frames fitted together (temporal smoothness acts inside a shard); one resumable file per shard."""
     link: Literal["symlink", "hardlink", "copy"] = "symlink"

@@ -18,7 +18,8 @@ those of the capture's (distorted) images; confidence 0 means "not detected".
 
 The keypoint -> joint map (:func:`load_joint_map`) is package data per format (``fitting/maps/``), each
 keypoint naming the rig joints it stands for, first match wins (CMU / anny names, then SMPL-X); a JSON
-file of the same form overrides it.
+file of the same form overrides it, and so does a packaged map named by its stem (:func:`packaged_joint_maps`:
+``body25_hands`` adds OpenPose's hand points to ``body25``).
 """
 
 from __future__ import annotations
@@ -94,8 +95,16 @@ def marker_offset(rig, template, joint: int, extreme: str) -> np.ndarray:
     return pts[np.argmax((pts - head) @ axis)] - head
 
 
+def packaged_joint_maps() -> tuple[str, ...]:
+    """Names of the keypoint -> joint maps shipped in ``gsavatar/fitting/maps`` (a format's default map is
+    named after the format), e.g. ``("body25", "body25_hands", "coco_wholebody")``."""
+    maps = resources.files("gsavatar.fitting").joinpath("maps")
+    return tuple(sorted(p.name[: -len(".json")] for p in maps.iterdir() if p.name.endswith(".json")))
+
+
 def load_joint_map(fmt: str, rig, path: str | Path | None = None, template=None) -> JointMap:
-    """The keypoint -> joint map of ``fmt`` for ``rig`` (package data, or the JSON file ``path``).
+    """The keypoint -> joint map of ``fmt`` for ``rig`` (package data, or the JSON file ``path``; a ``path``
+    that is no file but the name of a packaged map, :func:`packaged_joint_maps`, reads that map).
 
     File: ``{"format", "num_keypoints", "names": [...], "joints": {keypoint name: entry}}``; an entry is a
     list of rig joint candidates (the keypoint is that joint), or ``{"joints": [...], "extreme": "+z"}``: a
@@ -104,18 +113,21 @@ def load_joint_map(fmt: str, rig, path: str | Path | None = None, template=None)
     error.
     """
     src = Path(path) if path is not None else None
+    packaged = src is None or (not src.exists() and str(src) in packaged_joint_maps())
+    name = fmt if src is None else str(src)
     try:
-        text = (
-            src.read_text()
-            if src is not None
-            else resources.files("gsavatar.fitting").joinpath("maps", f"{fmt}.json").read_text()
-        )
+        text = resources.files("gsavatar.fitting").joinpath("maps", f"{name}.json").read_text() if packaged else None
+        text = src.read_text() if text is None else text
         obj = json.loads(text)
     except FileNotFoundError:
-        raise SchemaError(src or fmt, "", "joint map file not found") from None
+        raise SchemaError(
+            src or fmt, "", f"joint map file not found (packaged maps by name: {', '.join(packaged_joint_maps())})"
+        ) from None
+    except (IsADirectoryError, PermissionError) as e:
+        raise SchemaError(src or fmt, "", f"joint map cannot be read: {e.strerror}") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise SchemaError(src or fmt, "", f"not valid JSON: {e}") from None
-    where = src or f"gsavatar/fitting/maps/{fmt}.json"
+    where = f"gsavatar/fitting/maps/{name}.json" if packaged else src
     if not isinstance(obj, dict) or not isinstance(obj.get("names"), list) or not isinstance(obj.get("joints"), dict):
         raise SchemaError(where, "", "needs 'names' (list) and 'joints' (object: keypoint -> [rig joints])")
     if obj.get("format", fmt) != fmt or len(obj["names"]) not in MAP_SIZES[fmt]:
