@@ -13,7 +13,15 @@ import numpy as np
 import pytest
 import torch
 
-from gsavatar.models.ply import UP_AXES, ply_property_names, read_ply, rotate_gaussians, sh_rotation, write_ply
+from gsavatar.models.ply import (
+    UP_AXES,
+    WORLD_UP,
+    ply_property_names,
+    read_ply,
+    rotate_gaussians,
+    sh_rotation,
+    write_ply,
+)
 from gsavatar.render.rasterize import rasterize
 
 plyfile = pytest.importorskip("plyfile", reason="plyfile is a test dependency: pip install -e '.[test]'")
@@ -65,7 +73,7 @@ def test_up_axis_is_a_rotation_of_the_world():
         np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
         assert np.isclose(np.linalg.det(R), 1.0)
         target = {"z": [0, 0, 1], "-y": [0, -1, 0], "y": [0, 1, 0]}[axis]
-        np.testing.assert_allclose(R @ [0, 0, 1], target, atol=1e-12)
+        np.testing.assert_allclose(R @ WORLD_UP, target, atol=1e-12)
     # SH rotation: block diagonal, orthogonal, the identity for R = I
     D = sh_rotation(UP_AXES["-y"], 16)
     np.testing.assert_allclose(D @ D.T, np.eye(16), atol=1e-9)
@@ -87,14 +95,14 @@ def _look_at(eye, target, up):
     return M
 
 
-@pytest.mark.parametrize("axis", ["-y", "y"])
+@pytest.mark.parametrize("axis", ["-y", "z"])
 def test_up_axis_renders_the_same_from_matching_cameras(tmp_path, axis):
     """The file written with --up-axis, read back and rendered from the rotated camera, equals our
     Gaussians rendered from the original camera (positions, rotations and view-dependent SH all rotate)."""
     g = _gaussians(N=300, K=16, spread=0.3)
-    write_ply(tmp_path / "z.ply", **g)
+    write_ply(tmp_path / "ours.ply", **g)
     write_ply(tmp_path / "r.ply", **g, up_axis=axis)
-    ours, rot = read_ply(tmp_path / "z.ply"), read_ply(tmp_path / "r.ply")
+    ours, rot = read_ply(tmp_path / "ours.ply"), read_ply(tmp_path / "r.ply")
     assert not np.allclose(ours.means, rot.means, atol=1e-3)
     R = UP_AXES[axis]
     np.testing.assert_allclose(rot.means, ours.means @ R.T, atol=1e-6)
@@ -166,3 +174,32 @@ def test_splat_transform_reads_our_ply(tmp_path, K):
     ours = read_ply(tmp_path / "a.ply")
     np.testing.assert_allclose(vals[:, :3], ours.means, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(np.exp(vals[:, head.index("scale_0")]), ours.scales[:, 0], rtol=1e-5)
+
+
+@pytest.mark.parametrize("axis", ["y", "-y", "z"])
+def test_written_body_stands_along_the_files_up_axis(tmp_path, tiny_capture, axis):
+    """Against the capture itself: its cameras' image-down is -WORLD_UP and its body's head lies above its feet
+    along WORLD_UP; in a file written with ``up_axis`` the head lies above the feet along that axis."""
+    from gsavatar.data_schema import load_capture
+
+    cap = load_capture(tiny_capture)
+    down = np.mean([np.asarray(c.cam_from_world)[1, :3] for c in cap.cameras.values()], 0)
+    assert down @ WORLD_UP < -0.9  # every dome camera is upright
+    v = np.asarray(cap.template.vertices, np.float64)
+    N = len(v)
+    write_ply(
+        tmp_path / "body.ply",
+        v,
+        np.tile([1.0, 0, 0, 0], (N, 1)),
+        np.full((N, 3), 0.01),
+        np.full(N, 0.5),
+        np.zeros((N, 1, 3)),
+        up_axis=axis,
+    )
+    means = read_ply(tmp_path / "body.ply").means
+    up = {"y": [0, 1, 0], "-y": [0, -1, 0], "z": [0, 0, 1]}[axis]
+    height = means @ np.asarray(up, np.float64)
+    head_joint = [j.name for j in cap.rig.joints].index("Head")
+    head = cap.rig.heads()[head_joint] @ WORLD_UP
+    assert head > 1.0 and height.max() - height.min() > 1.0  # metres: a standing adult
+    np.testing.assert_allclose(height, v @ WORLD_UP, atol=1e-5)  # the file's up is our up

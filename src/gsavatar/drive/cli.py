@@ -105,8 +105,9 @@ class DriveArgs:
     """--view: colour from SH band 0 only (view independent)."""
     export_ply: Path | None = None
     """Write every driven frame's posed Gaussians as DIR/{t:06d}.ply (standard 3DGS layout)."""
-    up_axis: Literal["z", "-y", "y"] = "z"
-    """--export-ply: up axis of the files (``z``: ours; ``-y``: COLMAP/3DGS viewers such as SuperSplat)."""
+    up_axis: Literal["y", "-y", "z"] = "y"
+    """--export-ply: up axis of the files (``y``: ours; ``-y``: COLMAP/3DGS viewers such as SuperSplat; ``z``: Z-up
+    tools)."""
 
     def config(self) -> DriveConfig:
         """The drive configuration these arguments hold."""

@@ -14,10 +14,13 @@ Binary little-endian, one ``vertex`` element with float32 properties, in order::
 This is what common splat viewers (SuperSplat, the INRIA SIBR viewer, antimatter15)
 open. :func:`read_ply` reads it back (activated values), for tests and tools.
 
-Up axis: our world is the capture's, Z up. 3DGS viewers expect the COLMAP convention, Y down
-(``-y`` up). ``up_axis`` (:data:`UP_AXES`) rotates the Gaussians rigidly before writing so the given
-axis points where our +Z did: positions, rotations (``q_R * q``) and the SH coefficients of every band
-(:func:`sh_rotation`), so the colour seen from a rotated camera is unchanged.
+Up axis: our world is the capture's, **Y up** (:data:`WORLD_UP`; the synthetic captures, the imported
+bodies and the orbit cameras all share it). 3DGS viewers expect the COLMAP convention, Y down (``-y`` up);
+Blender-like tools Z up. ``up_axis`` (:data:`UP_AXES`) rotates the Gaussians rigidly before writing so the
+given axis points where our +Y did: positions, rotations (``q_R * q``) and the SH coefficients of every band
+(:func:`sh_rotation`), so the colour seen from a rotated camera is unchanged. (Before 2026-12-05 the table
+assumed a Z-up world: ``-y`` and ``y`` laid the body on its back, and ``z``, the default, was ours unchanged;
+the default is now ``y``, the same bytes.)
 """
 
 from __future__ import annotations
@@ -33,13 +36,15 @@ from gsavatar.render.sh import sh_bases
 from gsavatar.utils.io import atomic_path
 from gsavatar.utils.outdir import PLY_COMMENT
 
-UpAxis = Literal["z", "-y", "y"]
+UpAxis = Literal["y", "-y", "z"]
+WORLD_UP = np.array([0.0, 1.0, 0.0])
+"""Our world's up direction (the capture's: cameras' image-down is -Y, the body stands along +Y)."""
 UP_AXES: dict[str, np.ndarray] = {
-    "z": np.eye(3),  # ours (the capture's world): unchanged
-    "-y": np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]),  # +90 deg about x: +z -> -y (COLMAP / 3DGS, Y down)
-    "y": np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]),  # -90 deg about x: +z -> +y (Y-up viewers)
+    "y": np.eye(3),  # ours (the capture's world): unchanged
+    "-y": np.array([[1.0, 0, 0], [0, -1, 0], [0, 0, -1]]),  # 180 deg about x: +y -> -y (COLMAP / 3DGS, Y down)
+    "z": np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]),  # +90 deg about x: +y -> +z (Z-up tools)
 }
-"""Up axis of the written file -> rotation [3, 3] applied to our Z-up world (``R @ [0, 0, 1]`` = that axis)."""
+"""Up axis of the written file -> rotation [3, 3] applied to our Y-up world (``R @ WORLD_UP`` = that axis)."""
 
 _PLY_TYPES = {
     "char": "i1",
@@ -102,7 +107,7 @@ def ply_property_names(num_sh: int) -> list[str]:
 
 
 def up_axis_rotation(up_axis: str) -> np.ndarray:
-    """Rotation [3, 3] taking our Z-up world to one whose up is ``up_axis`` (see :data:`UP_AXES`)."""
+    """Rotation [3, 3] taking our Y-up world to one whose up is ``up_axis`` (see :data:`UP_AXES`)."""
     if up_axis not in UP_AXES:
         raise ValueError(f"up_axis must be one of {'/'.join(UP_AXES)}, got {up_axis!r}")
     return UP_AXES[up_axis].copy()
@@ -154,7 +159,7 @@ def write_ply(
     scales: Tensor | np.ndarray,
     opacities: Tensor | np.ndarray,
     sh: Tensor | np.ndarray,
-    up_axis: UpAxis = "z",
+    up_axis: UpAxis = "y",
 ) -> None:
     """Write one set of Gaussians (atomic).
 
@@ -164,7 +169,8 @@ def write_ply(
         scales: [N, 3] activated scales > 0, metres
         opacities: [N] activated opacities in (0, 1)
         sh: [N, K, 3] SH coefficients (K = (degree+1)^2), [:, 0] = DC
-        up_axis: up axis of the file (``z``: ours, unchanged; ``-y``: 3DGS / COLMAP viewers), :data:`UP_AXES`
+        up_axis: up axis of the file (``y``: ours, unchanged; ``-y``: 3DGS / COLMAP viewers; ``z``: Z-up tools),
+            :data:`UP_AXES`
     """
     R = up_axis_rotation(up_axis)
     m, q, s, o, c = map(_np, (means, quats, scales, opacities, sh))
@@ -176,7 +182,7 @@ def write_ply(
         raise ValueError(f"sh must be [{N}, (d+1)^2, 3], got {list(c.shape)}")
     K = c.shape[1]
     q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
-    if up_axis != "z":
+    if up_axis != "y":
         m, q, c = rotate_gaussians(R, m, q, c)
     o = np.clip(o, 1e-7, 1 - 1e-7)
     cols = [
@@ -198,7 +204,7 @@ def write_ply(
             f.write(np.ascontiguousarray(data).tobytes())
 
 
-def export_frame_ply(path: str | Path, out, frame: int = 0, up_axis: UpAxis = "z") -> None:
+def export_frame_ply(path: str | Path, out, frame: int = 0, up_axis: UpAxis = "y") -> None:
     """Write frame ``frame`` of an :class:`~gsavatar.models.avatar.AvatarOutput` (posed)."""
     write_ply(
         path,

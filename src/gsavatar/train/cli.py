@@ -101,9 +101,9 @@ class Export:
     """Capture frame whose pose (and projected texture) is used."""
     out: Path = Path("avatar.ply")
     """Output PLY path."""
-    up_axis: Literal["z", "-y", "y"] = "z"
-    """Up axis of the file: ``z`` (ours, the capture's world) or ``-y`` (COLMAP / 3DGS viewers: SuperSplat,
-    SIBR; positions, rotations and SH rotated together, docs/drive.md)."""
+    up_axis: Literal["y", "-y", "z"] = "y"
+    """Up axis of the file: ``y`` (ours, the capture's world), ``-y`` (COLMAP / 3DGS viewers: SuperSplat, SIBR) or
+    ``z`` (Z-up tools); positions, rotations and SH rotated together, docs/drive.md."""
     force: bool = False
     """Replace an existing ``out`` that is not a gsavatar PLY (refused otherwise)."""
 
