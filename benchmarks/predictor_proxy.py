@@ -35,6 +35,12 @@ def main() -> None:
     ap.add_argument("--weight-decay", type=float, default=1e-2)
     ap.add_argument("--absolute", action="store_true", help="l_t = mean + head(h) (not residual)")
     ap.add_argument("--joint-tokens", action="store_true", help="joint-position tokens in the heading frame")
+    ap.add_argument("--joint-speeds", action="store_true", help="with --joint-tokens: the joints' speeds too")
+    ap.add_argument("--gate", action="store_true", help="gated update l + g (c - l) (PredictorConfig.gate)")
+    ap.add_argument(
+        "--no-latent-tokens", action="store_true", help="with --gate: the previous latents only enter the gate"
+    )
+    ap.add_argument("--signals", action="store_true", help="the kinematic signal readout (readout='signals')")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--train-frames", type=int, default=None, help="train on the last N training frames only")
     ap.add_argument("--json", type=Path, default=None)
@@ -74,6 +80,11 @@ def main() -> None:
         initial_net=False,
         velocities=not a.no_velocities,
         joint_tokens=a.joint_tokens,
+        joint_speeds=a.joint_speeds,
+        gate=a.gate,
+        latent_tokens=not a.no_latent_tokens,
+        readout="signals" if a.signals else "transformer",
+        latent_pca="global" if a.signals else "anchor",
     )
     if a.no_velocities:
         cfg = dataclasses.replace(cfg, history=1)
@@ -85,7 +96,7 @@ def main() -> None:
         cap.rig.pose_dim,
         None,
         seed=a.seed,
-        kinematics=KinematicChain.from_rig(cap.rig) if a.joint_tokens else None,
+        kinematics=KinematicChain.from_rig(cap.rig) if a.joint_tokens or a.signals else None,
     )
     train_frames = np.asarray(cap.splits["train"].frames)
     if a.train_frames is not None:  # one change: the amount of training data, the test frames unchanged
@@ -115,6 +126,10 @@ def main() -> None:
         "history": cfg.history,
         "velocities": cfg.velocities,
         "joint_tokens": cfg.joint_tokens,
+        "joint_speeds": cfg.joint_speeds,
+        "gate": cfg.gate,
+        "latent_tokens": cfg.latent_tokens,
+        "readout": cfg.readout,
         "steps": a.steps,
         "train_frames": int(len(train_frames)),
         "seconds": secs,

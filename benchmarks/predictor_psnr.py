@@ -24,6 +24,32 @@ import numpy as np
 import torch
 
 
+def true_state_latents(
+    capture_root: Path, targets, frames: list[int], ridge: float = 1e-3, held: int | None = None
+) -> torch.Tensor:
+    """Latents of ``frames`` read from the true states by a ridge fit on the training frames' encoder latents.
+
+    The states are ``gt/motion_states.npz`` levels, standardised on the training frames; the read-out is affine
+    (a perfect predictor of the states, rendered through the best linear map to the latent space). ``held``: that
+    state is replaced by its training mean in the frames read out (a perfect predictor of every other state that
+    never learnt this one). -> [T, A, L]"""
+    levels = np.load(capture_root / "gt" / "motion_states.npz")["levels"].astype(np.float64)  # [F, E]
+    lat = np.asarray(targets.latents, dtype=np.float64)  # [n, A, L]
+    shape = lat.shape[1:]
+    from gsavatar.data_schema.capture import load_capture
+
+    train = set(int(f) for f in load_capture(capture_root).splits["train"].frames)
+    rows = [i for i, f in enumerate(targets.frames) if int(f) in train]
+    ftr = np.asarray(targets.frames)[rows]
+    mu, sd = levels[ftr].mean(0), levels[ftr].std(0) + 1e-8
+    X = np.c_[(levels - mu) / sd, np.ones(len(levels))]
+    A, Y = X[ftr], lat[rows].reshape(len(rows), -1)
+    W = np.linalg.solve(A.T @ A + ridge * len(rows) * np.eye(A.shape[1]), A.T @ Y)
+    if held is not None:
+        X[:, held] = 0.0  # the standardised training mean
+    return torch.as_tensor((X[np.asarray(frames)] @ W).reshape(len(frames), *shape), dtype=torch.float32)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", type=Path, required=True)
@@ -33,6 +59,13 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=3)
     ap.add_argument("--image-scale", type=float, default=1.0)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument(
+        "--oracles",
+        action="store_true",
+        help="also render two upper bounds: the encoder's latents through the first predictor's output clamp, and "
+        "a ridge from the capture's true states (gt/motion_states.npz) to the encoder's latents fit on the "
+        "training frames (what a predictor that knew the states exactly could render)",
+    )
     a = ap.parse_args()
     torch.set_num_threads(1)
 
@@ -76,6 +109,13 @@ def main() -> None:
         with torch.no_grad():
             sources[f"{label} zero init"] = m.rollout(P, R, Tr, m.zero_latents())
             sources[f"{label} encoder init"] = m.rollout(P, R, Tr, enc[0], first_is_given=True)
+    if a.oracles:
+        first = predictor_from_checkpoint(Path(a.predictors[0].partition("=")[2].split("+")[0]))
+        sources["oracle: encoder clamped"] = first.clamp_latents(enc)
+        sources["oracle: true states"] = true_state_latents(cap.root, targets, frames)
+        names = [str(n) for n in np.load(cap.root / "gt" / "motion_states.npz")["names"]]
+        for i, n in enumerate(names):
+            sources[f"oracle: true states, {n} at its mean"] = true_state_latents(cap.root, targets, frames, held=i)
     picks = list(range(0, T, a.every))
     sse = {k: 0.0 for k in sources}
     npx = 0

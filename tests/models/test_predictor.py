@@ -14,6 +14,7 @@ from gsavatar.models.predictor import (
     PredictorConfig,
     fit_latent_pca,
     heading_frame,
+    joint_speeds,
     latent_pca_project,
     memory_features,
     relative_root_motion,
@@ -355,6 +356,53 @@ def test_joint_token_predictor_rebuilds_from_its_state_dict():
         AppearancePredictor(m.config, A, [0], m.pose_dim)
 
 
+def test_joint_speeds_against_a_naive_loop_and_a_closed_form():
+    g = torch.Generator().manual_seed(4)
+    q = torch.randn(2, 5, 3, 3, generator=g, dtype=torch.float64)  # [B, N, J, 3]
+    sp = joint_speeds(q, root=1)
+    assert sp.shape == (2, 3, 4)
+    for b in range(2):
+        for j in range(3):
+            for k in range(1, 5):
+                r_now, r_before = q[b, k, j] - q[b, k, 1], q[b, k - 1, j] - q[b, k - 1, 1]
+                torch.testing.assert_close(sp[b, j, k - 1], torch.linalg.norm(r_now - r_before))
+    assert sp[:, 1].abs().max() == 0  # the root does not move relative to itself
+    # a joint gliding at a constant velocity while the whole body translates: its speed is |v| in every pair
+    t = torch.arange(6, dtype=torch.float64)[:, None]
+    body = torch.tensor([0.3, -0.2, 0.5], dtype=torch.float64) * t  # the root's (and everything's) drift
+    v = torch.tensor([0.03, 0.04, 0.0], dtype=torch.float64)  # |v| = 0.05 per frame
+    glide = torch.stack([body, body + v * t + 1.0], 1)[None]  # [1, 6, 2, 3]
+    torch.testing.assert_close(joint_speeds(glide, 0)[0, 1], torch.full((5,), 0.05, dtype=torch.float64))
+
+
+def test_joint_speed_tokens_are_the_positions_speeds_and_keep_the_symmetries():
+    m = joint_model(joint_speeds=True)
+    base = joint_model()
+    pose, rot, trans = joint_seq(N, m.pose_dim)
+    f = m.joint_features(pose[None], rot[None], trans[None])
+    f0 = base.joint_features(pose[None], rot[None], trans[None])
+    assert f.shape == (1, m.num_joints, m.joint_feature_dim) and m.joint_feature_dim == f0.shape[-1] + N - 1
+    torch.testing.assert_close(f[..., : f0.shape[-1]], f0)  # the position blocks are unchanged
+    # the speeds from the positions the joint tokens see (forward kinematics of the rig, world frame): the heading
+    # frame is one rotation for the window, so they are world speeds relative to the root
+    from gsavatar.geometry.lbs import pose_joints
+    from tests.prep_fixtures import arm_rig
+
+    world = pose_joints(arm_rig(), pose.double(), rot.double(), trans.double())[None]  # [1, N, J, 3]
+    torch.testing.assert_close(f[..., f0.shape[-1] :].double(), joint_speeds(world, m.root_joint), atol=1e-5, rtol=0)
+    prev = torch.randn(1, A, L)
+    with torch.no_grad():
+        m.joint_feature_scale.fill_(3.0)
+    a = m(pose[None], rot[None], trans[None], prev)
+    yaw = axis_angle_to_matrix(torch.tensor([0.0, -1.2, 0.0], dtype=torch.float64))
+    head = torch.as_tensor(m.kin_heads[m.root_joint], dtype=torch.float64)
+    rot2 = matrix_to_axis_angle(yaw @ axis_angle_to_matrix(rot.double())).float()
+    trans2 = ((head + trans.double()) @ yaw.T + torch.tensor([0.7, 0.0, 1.1], dtype=torch.float64) - head).float()
+    torch.testing.assert_close(m(pose[None], rot2[None], trans2[None], prev), a, atol=1e-4, rtol=0)
+    with pytest.raises(ValueError, match="joint_speeds needs config.joint_tokens"):
+        AppearancePredictor(PredictorConfig(**{**SMALL.to_json(), "joint_speeds": True}), A, [0], P)
+
+
 def test_memory_features_against_a_naive_loop_and_closed_forms():
     g = torch.Generator().manual_seed(1)
     x = torch.randn(2, 7, 3, generator=g, dtype=torch.float64)
@@ -401,3 +449,301 @@ def test_memory_timescales_widen_the_window_and_keep_streaming_exact():
     assert not torch.allclose(a, b)
     with pytest.raises(ValueError, match="memory_timescales"):
         model(memory_timescales=(0.0,))
+
+
+def gated_model(**kw) -> AppearancePredictor:
+    """A gated predictor with visibly input-dependent candidate and gate."""
+    m = model(untrained=True, gate=True, **kw)
+    g = torch.Generator().manual_seed(5)
+    with torch.no_grad():
+        m.head.weight.copy_(torch.randn(m.head.weight.shape, generator=g) * 0.3)
+        m.gate_head.weight.copy_(torch.randn(m.gate_head.weight.shape, generator=g) * 0.5)
+        m.gate_head.bias.zero_()
+    return m
+
+
+def test_gated_update_is_a_convex_step_toward_the_candidate():
+    m = gated_model()
+    m.fit_latent_statistics(torch.randn(30, A, L, generator=torch.Generator().manual_seed(1)) * 2.0 + 0.5)
+    m.latent_pca_ready.fill_(False)  # no clamp: the update itself
+    pose, rot, trans = seq(6)
+    prev = torch.randn(2, A, L) * 2.0
+    win = [windows(x, 5).expand(2, -1, -1) for x in (pose, rot, trans)]
+    out = m(*win, prev)
+    # the same forward by hand: tokens -> anchor tokens -> gate and candidate -> l + g (c - l)
+    x, _ = m.input_features(*win)
+    x = (x - m.feature_mean) * m.feature_scale
+    lat = (prev - m.latent_mean) / m.latent_scale
+    tok = torch.cat([m.pose_tokens(x) + m.type_embedding[0], m.latent_tokens(lat) + m.type_embedding[1]], 1)
+    h = m.norm(m.transformer(tok + m.positional))[:, m.num_slots :]
+    g, c = torch.sigmoid(m.gate_head(h)).detach(), (m.latent_mean + m.latent_scale * m.head(h)).detach()
+    assert 0 < float(g.min()) and float(g.max()) < 1
+    torch.testing.assert_close(out, prev + g * (c - prev), atol=1e-5, rtol=1e-5)
+    # each (anchor, dim) lands between its previous value and its candidate
+    lo, hi = torch.minimum(prev, c), torch.maximum(prev, c)
+    assert bool(((out >= lo - 1e-5) & (out <= hi + 1e-5)).all())
+
+
+def test_untrained_gated_predictor_starts_near_persistence():
+    m = model(untrained=True, gate=True)
+    pose, rot, trans = seq(4)
+    prev = torch.randn(1, A, L)
+    out = m(windows(pose, 3), windows(rot, 3), windows(trans, 3), prev)
+    step = (out - prev).detach().abs().max()
+    assert 0 < float(step) < 0.05 * float((prev - m.latent_mean).abs().max() + 1.0)
+
+
+def test_gate_without_latent_tokens_is_affine_in_the_previous_latents():
+    m = gated_model(latent_tokens=False)
+    assert not any(k.startswith("latent_tokens.") for k in m.state_dict())  # no token of the previous latents
+    pose, rot, trans = seq(6)
+    win = [windows(x, 5) for x in (pose, rot, trans)]
+    g = torch.Generator().manual_seed(2)
+    p1, p2 = torch.randn(1, A, L, generator=g), torch.randn(1, A, L, generator=g)
+    f = lambda p: m(*win, p)  # noqa: E731  (clamp not fit yet: the update alone)
+    for w in (0.0, 0.3, 1.7):
+        torch.testing.assert_close(f(w * p1 + (1 - w) * p2), w * f(p1) + (1 - w) * f(p2), atol=1e-5, rtol=1e-5)
+    assert not torch.allclose(f(p1), f(p2))  # the previous latents still matter, through the gate
+    # causality and streaming are those of any predictor
+    init = torch.randn(A, L)
+    outs, st = [], m.init_state(pose[0], rot[0], trans[0], init)
+    for t in range(6):
+        lat, st = m.step(st, pose[t], rot[t], trans[t])
+        outs.append(lat)
+    assert torch.equal(torch.stack(outs), m.rollout(pose, rot, trans, init))
+    rebuilt = AppearancePredictor(m.config, A, [0, 2, 3, 5, 7], P)
+    rebuilt.load_state_dict(m.state_dict())
+    assert torch.equal(rebuilt.eval()(*win, p1), f(p1))
+
+
+def test_gate_options_are_validated():
+    with pytest.raises(ValueError, match="config.gate needs config.residual"):
+        model(gate=True, residual=False)
+    with pytest.raises(ValueError, match="latent_tokens=False needs config.gate"):
+        model(latent_tokens=False)
+
+
+def test_signal_features_against_a_naive_loop_and_closed_forms():
+    from gsavatar.models.predictor import SIGNAL_KINDS, signal_features
+
+    assert SIGNAL_KINDS == ("speed", "height", "vertical_velocity", "vertical_acceleration")
+    g = torch.Generator().manual_seed(6)
+    q = torch.randn(2, 5, 3, 3, generator=g, dtype=torch.float64)  # [B, N, J, 3]
+    f = signal_features(q, root=1)
+    assert f.shape == (2, 3, 4, 5)
+    for b in range(2):
+        for j in range(3):
+            for k in range(5):
+                y = lambda kk: q[b, kk, j, 1]  # noqa: E731
+                assert float(f[b, j, 1, k]) == pytest.approx(float(q[b, k, j, 1] - q[b, k, 1, 1]), abs=1e-12)
+                if k >= 1:
+                    rel = (q[b, k, j] - q[b, k, 1]) - (q[b, k - 1, j] - q[b, k - 1, 1])
+                    assert float(f[b, j, 0, k]) == pytest.approx(float(torch.linalg.norm(rel)), abs=1e-12)
+                    assert float(f[b, j, 2, k]) == pytest.approx(float(y(k) - y(k - 1)), abs=1e-12)
+                if k >= 2:
+                    assert float(f[b, j, 3, k]) == pytest.approx(float(y(k) - 2 * y(k - 1) + y(k - 2)), abs=1e-12)
+    assert f[:, :, 0, 0].abs().max() == 0 and f[:, :, 2, 0].abs().max() == 0 and f[:, :, 3, :2].abs().max() == 0
+    # a ball thrown upward (y = v t - a t^2 / 2 per frame) beside a resting root: constant acceleration -a,
+    # vertical velocity v - a (k - 1/2), speed |vertical velocity|
+    t = torch.arange(6, dtype=torch.float64)
+    ball = torch.stack([torch.zeros(6), 0.3 * t - 0.02 * t * t, torch.zeros(6)], -1)
+    q2 = torch.stack([torch.zeros(6, 3, dtype=torch.float64), ball], 1)[None]  # [1, 6, 2, 3]
+    s = signal_features(q2, root=0)[0, 1]
+    torch.testing.assert_close(s[3, 2:], torch.full((4,), -0.04, dtype=torch.float64))
+    torch.testing.assert_close(s[2, 1:], 0.3 - 0.04 * (t[1:] - 0.5))
+    torch.testing.assert_close(s[0, 1:], s[2, 1:].abs())
+    torch.testing.assert_close(s[1], ball[:, 1])
+
+
+def signal_model(**kw) -> AppearancePredictor:
+    """A signal-readout predictor with fitted statistics and visibly input-dependent gate and candidate."""
+    from tests.prep_fixtures import arm_rig
+
+    rig = arm_rig()
+    cfg = PredictorConfig(
+        **{**SMALL.to_json(), "readout": "signals", "latent_pca": "global", "signal_heads": 2, "signal_hidden": 8, **kw}
+    )
+    m = AppearancePredictor(cfg, A, [0, 2, 3, 5, 7], rig.pose_dim, seed=0, kinematics=KinematicChain.from_rig(rig))
+    g = torch.Generator().manual_seed(8)
+    pose, rot, trans = joint_seq(40, rig.pose_dim, seed=1)
+    win = torch.clamp(torch.arange(40)[:, None] + torch.arange(-N + 1, 1), min=0)  # [40, N]
+    feats = m.input_features(pose[win], rot[win], trans[win])
+    m.fit_input_normalization(*feats)
+    m.fit_latent_statistics(torch.randn(40, A, L, generator=g) * 1.5 + 0.3)
+    if hasattr(m, "signal_out"):
+        with torch.no_grad():
+            m.signal_out.weight.copy_(torch.randn(m.signal_out.weight.shape, generator=g))
+            m.signal_out.bias.zero_()
+    return m.eval()
+
+
+def test_signal_readout_is_a_gated_step_of_the_global_pca_coefficients():
+    m = signal_model()
+    K = m.config.latent_pca_components
+    pose, rot, trans = joint_seq(N, m.pose_dim, seed=3)
+    prev = m.clamp_latents(torch.randn(1, A, L, generator=torch.Generator().manual_seed(4)))
+    out = m(pose[None], rot[None], trans[None], prev)
+    # by hand: standardised signal tokens -> shared MLP -> selections -> gate, candidate -> z + g (c - z)
+    raw = m.joint_features(pose[None], rot[None], trans[None])
+    sig = ((raw - m.joint_feature_mean) * m.joint_feature_scale).reshape(1, -1, N)
+    kinds = torch.eye(4).repeat(m.num_joints, 1)[None]
+    emb = m.signal_mlp(torch.cat([sig, kinds], -1))[0]  # [J*4, H]
+    pooled = torch.softmax(m.selection_logits, -1) @ emb  # [heads, H]
+    o = m.signal_out(pooled.reshape(1, -1))[0]
+    c, gate = o[:K], torch.sigmoid(o[K:])
+    z = ((prev - m.latent_mean) / m.latent_scale).flatten() @ m.global_basis
+    z = z + gate * (c - z)
+    ref = m.clamp_latents(m.latent_mean + m.latent_scale * (m.global_basis @ z).reshape(A, L))
+    torch.testing.assert_close(out[0], ref.detach(), atol=1e-5, rtol=1e-5)
+    # affine in the previous coefficients: a convex mix of two contexts gives the same mix of the answers
+    # (inside the clamp box, where the clamp is the identity on the subspace)
+    p2 = m.clamp_latents(prev + 0.05 * torch.randn(1, A, L, generator=torch.Generator().manual_seed(5)))
+    mix = m(pose[None], rot[None], trans[None], 0.5 * prev + 0.5 * p2)
+    both = 0.5 * out + 0.5 * m(pose[None], rot[None], trans[None], p2)
+    torch.testing.assert_close(mix, both, atol=1e-5, rtol=1e-5)
+
+
+def test_a_peaked_selection_reads_only_the_selected_joint_and_kind():
+    from tests.prep_fixtures import arm_rig
+
+    m = signal_model()
+    with torch.no_grad():  # every head selects the height of joint 3 (LeftForeArm of the chain Hips..LeftFinger)
+        m.selection_logits.fill_(-1e4)
+        m.selection_logits[:, 3 * 4 + 1] = 0.0
+    slots = arm_rig().slot_joints()
+    pose, rot, trans = joint_seq(N, m.pose_dim, seed=3)
+    prev = m.latent_mean[None].clone()
+    a = m(pose[None], rot[None], trans[None], prev)
+
+    def turned(joint: int) -> torch.Tensor:
+        p2 = pose.clone()
+        p2[:, slots == joint] += 0.4
+        return m(p2[None], rot[None], trans[None], prev)
+
+    torch.testing.assert_close(turned(4), a, atol=1e-6, rtol=0)  # the hand's rotation moves only the finger
+    torch.testing.assert_close(turned(3), a, atol=1e-6, rtol=0)  # its own rotation moves its children, not it
+    assert (turned(2) - a).abs().max() > 1e-3  # the upper arm's rotation moves the forearm's head
+    # turning and moving the whole motion about +Y keeps every signal
+    yaw = axis_angle_to_matrix(torch.tensor([0.0, 1.3, 0.0], dtype=torch.float64))
+    head = torch.as_tensor(m.kin_heads[m.root_joint], dtype=torch.float64)
+    rot2 = matrix_to_axis_angle(yaw @ axis_angle_to_matrix(rot.double())).float()
+    trans2 = ((head + trans.double()) @ yaw.T + torch.tensor([0.4, 0.0, -0.9], dtype=torch.float64) - head).float()
+    torch.testing.assert_close(m(pose[None], rot2[None], trans2[None], prev), a, atol=1e-4, rtol=0)
+
+
+def test_signal_predictor_streams_and_rebuilds_from_its_state_dict():
+    from gsavatar.models.predictor import KINEMATICS_KEYS
+
+    m = signal_model()
+    pose, rot, trans = joint_seq(9, m.pose_dim, seed=2)
+    init = m.latent_mean.clone()
+    st, outs = m.init_state(pose[0], rot[0], trans[0], init), []
+    for t in range(9):
+        lat, st = m.step(st, pose[t], rot[t], trans[t])
+        outs.append(lat)
+    ref = m.rollout(pose, rot, trans, init)
+    assert torch.equal(torch.stack(outs), ref)
+    sd = m.state_dict()
+    m2 = AppearancePredictor(
+        m.config, A, sd["pose_slots"], m.pose_dim, seed=1, kinematics=tuple(sd[k] for k in KINEMATICS_KEYS)
+    )
+    m2.load_state_dict(sd)
+    assert torch.equal(m2.eval().rollout(pose, rot, trans, init), ref)
+
+
+def test_signal_readout_options_are_validated_and_its_logits_train_faster():
+    from gsavatar.models.predictor import SELECTION_LR_SCALE
+    from gsavatar.train.predictor import optimizer_groups
+    from tests.prep_fixtures import arm_rig
+
+    kin = KinematicChain.from_rig(arm_rig())
+    P2 = kin.pose_dim
+    base = {**SMALL.to_json(), "readout": "signals", "latent_pca": "global"}
+    with pytest.raises(ValueError, match="latent_pca='global'"):
+        AppearancePredictor(PredictorConfig(**{**base, "latent_pca": "anchor"}), A, [0], P2, kinematics=kin)
+    with pytest.raises(ValueError, match="joint_tokens, memory_timescales cannot"):
+        AppearancePredictor(PredictorConfig(**{**base, "joint_tokens": True}), A, [0], P2, kinematics=kin)
+    with pytest.raises(ValueError, match="readout='signals' needs the rig's kinematics"):
+        AppearancePredictor(PredictorConfig(**base), A, [0], P2)
+    with pytest.raises(ValueError, match="config.readout must be"):
+        AppearancePredictor(PredictorConfig(**{**base, "readout": "mlp"}), A, [0], P2, kinematics=kin)
+    m = signal_model()
+    with pytest.raises(ValueError, match="feature_noise"):
+        pose, rot, trans = joint_seq(N, m.pose_dim)
+        m(pose[None], rot[None], trans[None], m.latent_mean[None], torch.zeros(1, m.num_slots, m.feature_dim))
+    groups = optimizer_groups(m, 1e-3)
+    assert len(groups) == 2 and groups[1]["params"] == [m.selection_logits]
+    assert groups[1]["lr"] == pytest.approx(1e-3 * SELECTION_LR_SCALE) and groups[1]["weight_decay"] == 0.0
+    assert sum(p.numel() for g in groups for p in g["params"]) == sum(p.numel() for p in m.parameters())
+    assert len(optimizer_groups(model(), 1e-3)) == 1  # the transformer: one group, as its checkpoints hold
+
+
+def test_signal_readout_without_history_sees_the_current_heights_only():
+    m = signal_model(history=1, velocities=False)
+    assert m.joint_feature_dim == 4
+    pose, rot, trans = joint_seq(5, m.pose_dim, seed=3)
+    f = m.joint_features(pose[None, -1:], rot[None, -1:], trans[None, -1:])  # [1, J, 4]
+    assert f[..., [0, 2, 3]].abs().max() == 0 and f[..., 1].abs().max() > 0
+    prev = m.latent_mean[None].clone()
+    a = m(pose[None, -1:], rot[None, -1:], trans[None, -1:], prev)
+    b = m(pose[None, -1:], rot[None, -1:], trans[None, -1:] + 0.3, prev)  # lifted whole: heights above the root
+    torch.testing.assert_close(a, b, atol=1e-5, rtol=0)
+
+
+def test_signal_pose_path_adds_the_current_poses_part_and_feeds_back_the_state():
+    m = signal_model(signal_pose_path=True)
+    K = m.config.latent_pca_components
+    g = torch.Generator().manual_seed(9)
+    with torch.no_grad():
+        m.signal_pose[-1].weight.copy_(torch.randn(m.signal_pose[-1].weight.shape, generator=g))
+    pose, rot, trans = joint_seq(N + 1, m.pose_dim, seed=4)
+    p = lambda f: m.signal_pose(m.initial_features(pose[f : f + 1]))[0].detach()  # noqa: E731  [K]
+    coef = lambda lat: ((lat - m.latent_mean) / m.latent_scale).flatten() @ m.global_basis  # noqa: E731
+    base = signal_model()  # the same weights but the pose path: z_t = z_{t-1} + g (c - z_{t-1})
+    base.load_state_dict({k: v for k, v in m.state_dict().items() if not k.startswith("signal_pose.")})
+    prev = m.clamp_latents(m.latent_mean + 0.2 * torch.randn(A, L, generator=g))
+    z_prev = coef(prev) - p(N - 2)  # the state under frame t-1's instantaneous part
+    # the gated step from the state the base model would get as its whole previous coefficients
+    prev_state = m.latent_mean + m.latent_scale * (m.global_basis @ z_prev).reshape(A, L)
+    step = coef(base(pose[None, :N], rot[None, :N], trans[None, :N], prev_state[None])[0])
+    out = m(pose[None, :N], rot[None, :N], trans[None, :N], prev[None])[0]
+    torch.testing.assert_close(coef(out), step + p(N - 1), atol=1e-4, rtol=1e-4)
+    assert (p(N - 1) - p(N - 2)).abs().max() > 1e-3 and K == p(0).numel()
+
+
+def test_both_readouts_gate_the_transformers_answer_toward_the_signals_candidate():
+    m = signal_model(readout="both")
+    tr = signal_model(readout="transformer", joint_tokens=False)  # the same transformer weights, no signals
+    tr.load_state_dict({k: v for k, v in m.state_dict().items() if k in tr.state_dict()}, strict=True)
+    with torch.no_grad():
+        m.head.weight.copy_(torch.randn(m.head.weight.shape, generator=torch.Generator().manual_seed(3)) * 0.3)
+        tr.head.weight.copy_(m.head.weight)
+    pose, rot, trans = joint_seq(N, m.pose_dim, seed=5)
+    prev = m.clamp_latents(m.latent_mean + 0.3 * torch.randn(1, A, L, generator=torch.Generator().manual_seed(6)))
+    args = (pose[None], rot[None], trans[None], prev)
+    K = m.config.latent_pca_components
+    with torch.no_grad():
+        m.signal_out.bias[K:].fill_(-1e4)  # shut: the transformer's answer
+    torch.testing.assert_close(m(*args), tr(*args), atol=1e-5, rtol=1e-5)
+    with torch.no_grad():
+        m.signal_out.bias[K:].fill_(1e4)  # open: the signals' candidate, whatever the transformer said
+        m.head.weight.mul_(3.0)
+    cand = m.signal_out(
+        torch.einsum(
+            "ht,td->hd",
+            torch.softmax(m.selection_logits, -1),
+            m.signal_mlp(
+                torch.cat(
+                    [
+                        ((m.joint_features(*args[:3]) - m.joint_feature_mean) * m.joint_feature_scale).reshape(-1, N),
+                        torch.eye(4).repeat(m.num_joints, 1),
+                    ],
+                    -1,
+                )
+            ),
+        ).reshape(1, -1)
+    )[0, :K].detach()
+    ref = m.clamp_latents(m.latent_mean + m.latent_scale * (m.global_basis @ cand).reshape(A, L))
+    torch.testing.assert_close(m(*args)[0], ref, atol=1e-5, rtol=1e-5)
+    with pytest.raises(ValueError, match="signal_pose_path is for readout='signals'"):
+        signal_model(readout="both", signal_pose_path=True)

@@ -376,3 +376,61 @@ def test_burn_in_starts_the_zero_pass_from_a_free_running_rollout():
     assert abs(float(d0.zero.detach()) - float(d1.zero.detach())) > 1e-6
     with pytest.raises(ValueError, match="burn_in"):
         PredictorTrainer(m, data, [(0, 40)], train_cfg(burn_in=-1), Path("/nonexistent/never-written"))
+
+
+def hysteresis_capture(F: int = 400, seed: int = 0):
+    """The arm rig moving smoothly; the latents follow a hysteresis of the hand's height above the hips (set above
+    the 75% quantile, reset below the 25%, held between), as in the synthetic captures' ``sleeve``."""
+    from gsavatar.geometry.lbs import KinematicChain, pose_joints
+    from gsavatar.synth.motion_effects import hysteresis_state
+    from tests.prep_fixtures import arm_rig
+
+    rig = arm_rig()
+    g = torch.Generator().manual_seed(seed)
+    t = torch.arange(F, dtype=torch.float64)[:, None]
+    Pr = rig.pose_dim
+    pose = 0.6 * torch.sin(
+        t * (0.08 + 0.12 * torch.rand(1, Pr, generator=g, dtype=torch.float64))
+        + 6 * torch.rand(1, Pr, generator=g, dtype=torch.float64)
+    )
+    rot, trans = torch.zeros(F, 3, dtype=torch.float64), torch.zeros(F, 3, dtype=torch.float64)
+    joints = pose_joints(rig, pose, rot, trans)  # [F, J, 3]
+    h = (joints[:, 4, 1] - joints[:, 0, 1]).numpy()
+    state = torch.as_tensor(
+        hysteresis_state(
+            h, *torch.quantile(torch.as_tensor(h), torch.tensor([0.25, 0.75], dtype=torch.float64)).tolist()
+        )
+    )
+    U = torch.randn(A, L, generator=g)
+    lat = U[None] * (state[:, None, None].float() - 0.5) + 0.05 * torch.randn(F, A, L, generator=g)
+    data = SequenceData(torch.arange(F), pose.float(), rot.float(), trans.float(), lat)
+    return data, state, KinematicChain.from_rig(rig), Pr
+
+
+def test_signal_readout_learns_a_height_hysteresis_and_resumes(tmp_path):
+    torch.set_num_threads(1)
+    data, state, kin, Pr = hysteresis_capture()
+    cfg = dataclasses.replace(SMALL, readout="signals", latent_pca="global", latent_pca_components=2, signal_heads=2)
+    train, test = [(0, 300)], (300, 400)
+
+    def run(out: Path, **kw) -> AppearancePredictor:
+        m = AppearancePredictor(cfg, A, list(range(Pr)), Pr, seed=0, kinematics=kin)
+        prepare_model(m, data, train)
+        PredictorTrainer(m, data, train, train_cfg(steps=600, lr=3e-3, model=cfg, **kw), out).train()
+        return m.eval()
+
+    m = run(tmp_path / "a")
+    s, e = test
+    out = m.rollout(data.pose[s:e], data.root_rotation[s:e], data.root_translation[s:e], m.zero_latents())
+    z = ((out - m.latent_mean) / m.latent_scale).flatten(1) @ m.global_basis[:, 0]  # the state's direction
+    r = torch.corrcoef(torch.stack([z, state[s:e].float()]))[0, 1]
+    assert float(state[s:e].std()) > 0.3 and float(abs(r)) > 0.8, float(r)  # it tracks the held-out flips
+    sel = torch.softmax(m.selection_logits.detach(), -1)
+    assert float(sel.max()) > 4.0 / sel.shape[1]  # the selections moved away from uniform
+    b = run(tmp_path / "b", max_steps_this_run=300)
+    b = run(tmp_path / "b")  # resumed at step 300: the same weights
+    assert all(torch.equal(v, b.state_dict()[k]) for k, v in m.state_dict().items())
+    c = predictor_from_checkpoint(tmp_path / "b" / "latest.pt")
+    torch.testing.assert_close(
+        c.rollout(data.pose[s:e], data.root_rotation[s:e], data.root_translation[s:e], c.zero_latents()), out
+    )

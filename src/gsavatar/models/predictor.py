@@ -46,6 +46,14 @@ and driving alike.
 Optional (beyond the paper): :class:`InitialLatentNet` regresses a frame's latents
 from its (PCA'd) pose alone; ``init_state(..., init_latents=None)`` starts from it
 when it has been trained, otherwise from zeros.
+
+The *signal readout* (``PredictorConfig.readout = "signals"``, beyond the paper, the CPU
+recipe since 2026-12-06) replaces tokens and transformer by a small state-space model:
+every rig joint's speed, height, vertical velocity and vertical acceleration over the
+window (:func:`signal_features`) are tokens of one shared MLP, learnt softmax
+selections pool them, and a gated update ``z_t = z_{t-1} + g (c - z_{t-1})`` moves the
+coefficients of the global latent PCA. Same interface, streaming and clamp; measured
+against the transformer in docs/train.md ("Kinematic signal tokens").
 """
 
 from __future__ import annotations
@@ -64,6 +72,18 @@ from gsavatar.geometry.lbs import KinematicChain, RigTensors, skinning_transform
 from gsavatar.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from gsavatar.models.mlp import AnchorMLPs
 from gsavatar.utils.jsonio import config_to_json
+
+SIGNAL_KINDS = ("speed", "height", "vertical_velocity", "vertical_acceleration")
+"""The kinematic signal tokens of every joint (``PredictorConfig.readout = "signals"``), :func:`signal_features`."""
+
+SELECTION_LR_SCALE = 50.0
+"""The trainer's learning-rate multiplier for the signal readout's selection logits (no weight decay): softmax
+logits that start uniform over ~120 tokens must move by several units to select a few of them within a few
+hundred steps, far more than the MLP weights' steps of ~lr each."""
+
+GATE_BIAS_INIT = -4.0
+"""Initial bias of the gate's logits (``config.gate``): sigmoid(-4) ~ 0.018, a predictor that starts as near
+persistence."""
 
 ROOT_SLOTS = 6
 """Extra pose slots carrying the relative root motion: axis-angle (3), translation (3)."""
@@ -113,6 +133,19 @@ class PredictorConfig:
     which leaves the output form open): the untrained predictor is persistence, a strong answer for
     appearance that dwells, and training moves away from it only where the data supports it. False:
     ``l_t = mean + scale * head(h)``. Measured in docs/train.md."""
+    gate: bool = False
+    """Gated update (beyond the paper; needs ``residual``): ``l_t = l_{t-1} + g * (c - l_{t-1})`` per (anchor, dim),
+    the candidate ``c = mean + scale * head(h)`` and the gate ``g = sigmoid(gate_head(h))`` both from the anchor's
+    token. Appearance that motion history causes is held, decays or is reset by a motion event (a sleeve stays
+    up until it is pushed down, sweat fades, cloth settles): a first-order recurrence whose rate and target the
+    motion sets. The gate starts nearly shut (``g ~ 0.02``: persistence, like the residual head's start).
+    Measured in docs/train.md."""
+    latent_tokens: bool = True
+    """The previous latents are tokens of the transformer (the paper's). False (needs ``gate``): the anchor tokens
+    are learnt per-anchor queries and the previous latents enter only through the gated update, so gate and
+    candidate are functions of the motion alone and the recurrence is linear in the latents: the predictor cannot
+    key its answer on the exact latents of its training sequence, and its rollout cannot compound a nonlinear
+    drift. Measured in docs/train.md."""
     zero_context: Literal["mean", "raw"] = "mean"
     """What "zero" previous latents are (the zero-context training pass and zero-init driving): ``mean`` = zero in
     the predictor's standardised latent space, i.e. the training-mean latent (our encoder's latents are not
@@ -125,6 +158,40 @@ class PredictorConfig:
     the paper, whose tokens are joint angles: cloth and hair respond to where limbs are and how fast they move
     relative to gravity, which joint angles encode only through the nonlinear kinematic chain, and the paper's
     root-frame normalisation tilts with the pelvis). Needs the rig (``kinematics``). Measured in docs/train.md."""
+    joint_speeds: bool = False
+    """With ``joint_tokens``: every joint token also gets the joint's speed relative to the root over the window,
+    ``|r_k - r_{k-1}|`` for the N_b - 1 frame pairs (``r`` = joint minus root position, per frame; the heading frame
+    is one rotation for the whole window, so these are world speeds). Beyond the paper: appearance that limb
+    *speed* drives (a cuff that rides up on a fast knee, sweat after effort) is a norm of a velocity, which a token
+    MLP must otherwise learn from few examples; the capture's fairness regressor with these speeds predicts
+    ``second``'s knee-speed hysteresis with R^2 0.52 instead of 0.08. Measured in docs/train.md."""
+    readout: Literal["transformer", "signals", "both"] = "transformer"
+    """``transformer``: the paper's tokens and transformer. ``signals`` (beyond the paper; needs ``latent_pca =
+    "global"``): a small state-space predictor over *kinematic signal tokens*. Every rig joint gives four tokens
+    over the window, its speed relative to the root, its height above the root, its vertical velocity and its
+    vertical acceleration (forward kinematics of the raw pose, per frame; without ``velocities`` the heights alone),
+    standardised per joint and kind; one
+    MLP shared by all tokens (plus the kind) embeds them; ``signal_heads`` learnt softmax selections over the
+    tokens pool the embeddings; a linear map of the pooled vector gives a gate ``g`` and a candidate ``c`` for each
+    coefficient of the global latent PCA, and the coefficients follow ``z_t = z_{t-1} + g (c - z_{t-1})``.
+    Appearance that motion causes is driven by a few body parts' kinematics through a memory (a hem swings after
+    the pelvis drops, a cuff rides up on a fast knee and stays): a shared embedding learns what a fast or high
+    limb looks like once for all joints, the selection learns which joints drive which appearance, and the gated
+    linear recurrence holds, fades or resets the state. ``both``: the transformer predicts as usual and the signal
+    readout then gates the global PCA coefficients of that prediction toward its own candidate,
+    ``y = y_T + g (c - y_T)`` (where no selected signal fires, the gate stays shut and the transformer's answer
+    stands). Measured in docs/train.md."""
+    signal_pose_path: bool = False
+    """With ``readout="signals"``: the latent PCA's coefficients are ``y_t = z_t + p_t``, the gated state ``z_t``
+    plus an instantaneous part ``p_t`` = MLP of frame t's clamped pose-PCA coefficients (the InitialLatentNet's
+    input; one hidden layer of ``signal_hidden``, zero at the start). Appearance that the current pose decides
+    (shading baked into the projected textures, cloth that follows a joint) needs no memory; the state then holds
+    only what the motion's history adds. The state fed back is ``z_{t-1} = y_{t-1} - p_{t-1}`` with frame t-1's
+    pose from the window (with N_b = 1, frame t's). Measured in docs/train.md."""
+    signal_heads: int = 8
+    """Softmax selections over the signal tokens (``readout="signals"``)."""
+    signal_hidden: int = 32
+    """Width of the shared signal-token MLP (two layers; ``readout="signals"``)."""
     initial_net: bool = True
     """Build the pose-conditioned :class:`InitialLatentNet` (beyond the paper)."""
     initial_hidden: int = 128
@@ -209,6 +276,33 @@ def heading_frame(joints: Tensor, root_world_rotation: Tensor) -> Tensor:
     q = p - origin
     x, y, z = q.unbind(-1)
     return torch.stack([c * x - s * z, y, s * x + c * z], -1).to(dt)
+
+
+def joint_speeds(joints: Tensor, root: int) -> Tensor:
+    """Every joint's speed relative to joint ``root`` between consecutive window frames (per frame, not per
+    second): ``|r_k - r_{k-1}|`` with ``r_k = p_k - p_k[root]``, k = 1..N-1 (the root's own speeds are 0).
+
+    joints [B, N, J, 3] (one rigid frame for the whole window) -> [B, J, N - 1], oldest pair first
+    """
+    r = joints - joints[:, :, root : root + 1]
+    d = (r[:, 1:] - r[:, :-1]).double()
+    return torch.sqrt((d * d).sum(-1)).transpose(1, 2).to(joints.dtype)
+
+
+def signal_features(joints: Tensor, root: int) -> Tensor:
+    """Kinematic signals of every joint over the window (:data:`SIGNAL_KINDS`), per frame, zero-padded at the oldest
+    end to N values: the speed relative to joint ``root`` (:func:`joint_speeds`), the height above the root, the
+    vertical velocity and the vertical acceleration (backward differences of the height in the world, +Y up).
+
+    joints [B, N, J, 3] (heading frame or world: one rigid frame with +Y up for the whole window)
+    -> [B, J, 4, N] (oldest first; kinds in :data:`SIGNAL_KINDS` order)
+    """
+    B, N, J, _ = joints.shape
+    y = joints[..., 1].transpose(1, 2)  # [B, J, N]
+    vy = y[..., 1:] - y[..., :-1]  # [B, J, N-1]
+    ay = vy[..., 1:] - vy[..., :-1]  # [B, J, N-2]
+    pad = lambda x: torch.nn.functional.pad(x, (N - x.shape[-1], 0))  # noqa: E731
+    return torch.stack([pad(joint_speeds(joints, root)), y - y[:, root : root + 1], pad(vy), pad(ay)], 2)
 
 
 def window_features(x: Tensor) -> Tensor:
@@ -460,11 +554,36 @@ class AppearancePredictor(_Streaming, nn.Module):
             raise ValueError(f"config.memory_timescales must be positive frame counts, got {c.memory_timescales}")
         if c.memory_timescales and c.joint_tokens:
             raise ValueError("config.memory_timescales and config.joint_tokens cannot be combined (not implemented)")
+        if c.gate and not c.residual:
+            raise ValueError("config.gate needs config.residual (the gate mixes the previous latents in)")
+        if not c.latent_tokens and not c.gate:
+            raise ValueError("config.latent_tokens=False needs config.gate (the previous latents enter through it)")
+        if c.readout not in ("transformer", "signals", "both"):
+            raise ValueError(f"config.readout must be 'transformer', 'signals' or 'both', got {c.readout!r}")
+        signals = c.readout in ("signals", "both")
+        if signals and c.latent_pca != "global":
+            raise ValueError("config.readout='signals' needs config.latent_pca='global' (its state is the PCA's)")
+        if signals and (c.joint_tokens or c.memory_timescales):
+            raise ValueError(
+                "config.readout='signals' reads its own joint signals over the window of N_b frames: "
+                "joint_tokens, memory_timescales cannot be combined with it"
+            )
+        if c.readout == "both" and c.signal_pose_path:
+            raise ValueError(
+                "config.signal_pose_path is for readout='signals' (with 'both' the transformer has the pose)"
+            )
+        if signals and (c.signal_heads < 1 or c.signal_hidden < 1):
+            raise ValueError(
+                f"config.signal_heads and signal_hidden must be >= 1, got {c.signal_heads}, {c.signal_hidden}"
+            )
+        if c.joint_speeds and not c.joint_tokens:
+            raise ValueError("config.joint_speeds needs config.joint_tokens (the speeds ride on the joint tokens)")
         Fdim = (3 * c.history - 3 if c.velocities else c.history) + 3 * len(c.memory_timescales)
         self.chain: KinematicChain | None = None
-        if c.joint_tokens:
+        if c.joint_tokens or signals:
             if kinematics is None:
-                raise ValueError("config.joint_tokens needs the rig's kinematics (KinematicChain), got None")
+                what = "joint_tokens" if c.joint_tokens else "readout='signals'"
+                raise ValueError(f"config.{what} needs the rig's kinematics (KinematicChain), got None")
             self.chain = kinematics if isinstance(kinematics, KinematicChain) else KinematicChain(*kinematics)
             if self.chain.pose_dim != pose_dim:
                 raise ValueError(f"kinematics drive {self.chain.pose_dim} pose slots, pose_dim is {pose_dim}")
@@ -472,6 +591,11 @@ class AppearancePredictor(_Streaming, nn.Module):
             self.root_joint = int(np.flatnonzero(self.chain.parents() < 0)[0])
         J = self.chain.num_joints if self.chain is not None else 0
         self.num_slots, self.num_joints, self.feature_dim = S, J, Fdim
+        Jt = J if c.joint_tokens else 0  # the transformer's joint tokens
+        if signals:
+            self.joint_feature_dim = len(SIGNAL_KINDS) * c.history  # [kind, frame] flattened
+        else:
+            self.joint_feature_dim = 3 * Fdim + (c.history - 1 if c.joint_speeds else 0)  # x, y, z blocks (+ speeds)
         f32 = lambda a: None if a is None else torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
         self.register_buffer("pose_slots", slots)  # [S - 6]
         pm, pb, pl = pose_pca if pose_pca is not None else (None, None, None)
@@ -483,8 +607,8 @@ class AppearancePredictor(_Streaming, nn.Module):
         if self.chain is not None:  # only then: checkpoints without joint tokens keep their state_dict keys
             for key, arr in zip(KINEMATICS_KEYS, self.chain.arrays()):
                 self.register_buffer(key, torch.as_tensor(arr))
-            self.register_buffer("joint_feature_mean", torch.zeros(J, 3 * Fdim))  # [J, 3 (3N-3)] x, y, z blocks
-            self.register_buffer("joint_feature_scale", torch.ones(J, 3 * Fdim))
+            self.register_buffer("joint_feature_mean", torch.zeros(J, self.joint_feature_dim))  # [J, 3 (3N-3) (+ N-1)]
+            self.register_buffer("joint_feature_scale", torch.ones(J, self.joint_feature_dim))
         self.register_buffer("latent_mean", torch.zeros(A, L))  # [A, L] train mean (also the PCA centre)
         self.register_buffer("latent_scale", torch.ones(A, L))  # [A, L] train std (floored)
         self.register_buffer("latent_basis", torch.zeros(A, L, K))
@@ -495,28 +619,62 @@ class AppearancePredictor(_Streaming, nn.Module):
             self.register_buffer("global_basis", torch.zeros(A * L, Kg))  # [A*L, Kg] standardised space
             self.register_buffer("global_limit", torch.zeros(Kg))  # [Kg]
         self.register_buffer("initial_ready", torch.tensor(False))
-        self.register_buffer("positional", sinusoidal_encoding(S + J + A, D), persistent=False)  # [S + J + A, D]
+        self.register_buffer("positional", sinusoidal_encoding(S + Jt + A, D), persistent=False)  # [S + Jt + A, D]
 
         gen = torch.Generator().manual_seed(seed)
         with torch.random.fork_rng(devices=[]):  # nn.TransformerEncoderLayer / nn.Linear draw from the global RNG
             torch.manual_seed(seed)
-            self.pose_tokens = AnchorMLPs(S, Fdim, D, (c.token_hidden,), generator=gen)
-            self.latent_tokens = AnchorMLPs(A, L, D, (c.token_hidden,), generator=gen)
-            self.type_embedding = nn.Parameter(torch.zeros(2, D))  # [pose, latent]
-            if J:
-                self.joint_tokens = AnchorMLPs(J, 3 * Fdim, D, (c.token_hidden,), generator=gen)
-                self.joint_type_embedding = nn.Parameter(torch.zeros(D))
-            layer = nn.TransformerEncoderLayer(
-                D, c.heads, c.ff, c.dropout, activation="gelu", batch_first=True, norm_first=True
-            )
-            self.transformer = nn.TransformerEncoder(layer, c.blocks, enable_nested_tensor=False)
-            self.norm = nn.LayerNorm(D)
-            self.head = nn.Linear(D, L)
-            with torch.no_grad():  # start at the previous latents (residual: exact persistence) / near the mean
-                self.head.weight.mul_(0.0 if c.residual else 0.1)
-                self.head.bias.zero_()
+            if c.readout != "signals":
+                self._build_transformer(S, Jt, Fdim, gen)
+            if signals:
+                self._build_signal_readout(J, gen)
             init_in = int(pb.shape[1]) if pb is not None else int(slots.numel())
             self.initial = InitialLatentNet(init_in, A, L, c.initial_hidden) if c.initial_net and init_in > 0 else None
+
+    def _build_signal_readout(self, J: int, gen: torch.Generator) -> None:
+        c, H, K, n = self.config, self.config.signal_hidden, self.config.latent_pca_components, len(SIGNAL_KINDS)
+        self.signal_mlp = nn.Sequential(nn.Linear(c.history + n, H), nn.ReLU(), nn.Linear(H, H))
+        self.selection_logits = nn.Parameter(torch.zeros(c.signal_heads, J * n))  # uniform at the start
+        self.signal_out = nn.Linear(c.signal_heads * H, 2 * K)  # candidate, gate logits
+        with torch.no_grad():
+            self.signal_out.weight.mul_(0.1)
+            self.signal_out.bias.zero_()
+            self.signal_out.bias[K:].fill_(GATE_BIAS_INIT)
+        self.register_buffer("signal_kind_code", torch.eye(n).repeat(J, 1), persistent=False)  # [J*4, 4]
+        if c.signal_pose_path:
+            P_in = (
+                int(self.pose_pca_basis.shape[1]) if self.pose_pca_basis is not None else int(self.pose_slots.numel())
+            )
+            self.signal_pose = nn.Sequential(nn.Linear(P_in, H), nn.ReLU(), nn.Linear(H, K))
+            with torch.no_grad():
+                self.signal_pose[-1].weight.zero_()
+                self.signal_pose[-1].bias.zero_()
+
+    def _build_transformer(self, S: int, J: int, Fdim: int, gen: torch.Generator) -> None:
+        c, A, L, D = self.config, self.num_anchors, self.config.latent_dim, self.config.width
+        self.pose_tokens = AnchorMLPs(S, Fdim, D, (c.token_hidden,), generator=gen)
+        if c.latent_tokens:
+            self.latent_tokens = AnchorMLPs(A, L, D, (c.token_hidden,), generator=gen)
+        else:  # learnt per-anchor queries: the anchors' tokens do not see the previous latents
+            self.anchor_queries = nn.Parameter(torch.randn(A, D, generator=gen) * 0.02)
+        self.type_embedding = nn.Parameter(torch.zeros(2, D))  # [pose, latent]
+        if J:
+            self.joint_tokens = AnchorMLPs(J, self.joint_feature_dim, D, (c.token_hidden,), generator=gen)
+            self.joint_type_embedding = nn.Parameter(torch.zeros(D))
+        layer = nn.TransformerEncoderLayer(
+            D, c.heads, c.ff, c.dropout, activation="gelu", batch_first=True, norm_first=True
+        )
+        self.transformer = nn.TransformerEncoder(layer, c.blocks, enable_nested_tensor=False)
+        self.norm = nn.LayerNorm(D)
+        self.head = nn.Linear(D, L)
+        if c.gate:
+            self.gate_head = nn.Linear(D, L)
+        with torch.no_grad():  # start at the previous latents (residual: exact persistence) / near the mean
+            self.head.weight.mul_(0.0 if c.residual and not c.gate else 0.1)
+            self.head.bias.zero_()
+            if c.gate:  # nearly shut: ~2% of the way to the candidate per frame
+                self.gate_head.weight.mul_(0.1)
+                self.gate_head.bias.fill_(GATE_BIAS_INIT)
 
     # ------------------------------------------------------------------ inputs
     def conditioning_pose(self, pose: Tensor) -> Tensor:
@@ -547,9 +705,27 @@ class AppearancePredictor(_Streaming, nn.Module):
     def joint_features(self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor) -> Tensor:
         """Raw joint-token features (``config.joint_tokens``): every joint's heading-frame position over the
         window (:func:`heading_frame`; forward kinematics of the raw pose), then the values, velocities and
-        accelerations of x, y, z. [B, N, P], [B, N, 3], [B, N, 3] -> [B, J, 3 (3N-3)] (values only: [B, J, 3N])"""
+        accelerations of x, y, z (and with ``config.joint_speeds`` the :func:`joint_speeds`).
+        [B, N, P], [B, N, 3], [B, N, 3] -> [B, J, 3 (3N-3) (+ N-1)] (values only: [B, J, 3N (+ N-1)])"""
         if self.chain is None:
             raise ValueError("joint_features needs config.joint_tokens")
+        q = self.heading_joints(pose_window, root_rot_window, root_trans_window)  # [B, N, J, 3]
+        B, N, J, _ = q.shape
+        if self.config.readout in ("signals", "both"):
+            sig = signal_features(q, self.root_joint)  # [B, J, 4, N]
+            if not self.config.velocities:  # values only: the heights (the no-history ablation with N_b = 1)
+                sig = sig * torch.tensor([0.0, 1.0, 0.0, 0.0], dtype=sig.dtype, device=sig.device)[:, None]
+            return sig.reshape(B, J, -1)  # [B, J, 4 N]
+        x = q.permute(0, 1, 3, 2).reshape(B, N, 3 * J)  # slot = coordinate * J + joint
+        f = window_features(x) if self.config.velocities else x.transpose(1, 2)  # [B, 3J, F]
+        f = f.reshape(B, 3, J, -1).permute(0, 2, 1, 3).reshape(B, J, -1)  # [B, J, 3F]: x block, y, z
+        if self.config.joint_speeds:
+            f = torch.cat([f, joint_speeds(q, self.root_joint)], -1)  # [B, J, 3F + N - 1]
+        return f
+
+    def heading_joints(self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor) -> Tensor:
+        """The rig's joints over the last N_b window frames in the last frame's heading frame (forward kinematics
+        of the raw pose, :func:`heading_frame`). [B, N, P], [B, N, 3], [B, N, 3] -> [B, N_b, J, 3]"""
         N = self.config.history  # the paper's window (memory features are pose-slot only)
         pose_window, root_rot_window = pose_window[:, -N:], root_rot_window[:, -N:]
         root_trans_window = root_trans_window[:, -N:]
@@ -564,11 +740,7 @@ class AppearancePredictor(_Streaming, nn.Module):
         )  # [B*N, J, 4, 4]
         heads = self._rig.heads.to(T)
         joints = ((T[..., :3, :3] @ heads[None, :, :, None])[..., 0] + T[..., :3, 3]).reshape(B, N, -1, 3)
-        q = heading_frame(joints, T.reshape(B, N, -1, 4, 4)[:, -1, self.root_joint, :3, :3])  # [B, N, J, 3]
-        J = q.shape[2]
-        x = q.permute(0, 1, 3, 2).reshape(B, N, 3 * J)  # slot = coordinate * J + joint
-        f = window_features(x) if self.config.velocities else x.transpose(1, 2)  # [B, 3J, F]
-        return f.reshape(B, 3, J, -1).permute(0, 2, 1, 3).reshape(B, J, -1)  # [B, J, 3F]: x block, y, z
+        return heading_frame(joints, T.reshape(B, N, -1, 4, 4)[:, -1, self.root_joint, :3, :3])  # [B, N, J, 3]
 
     def input_features(
         self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor
@@ -584,7 +756,7 @@ class AppearancePredictor(_Streaming, nn.Module):
     ) -> None:
         """Standardise each (slot, feature) with training statistics; constant ones are dropped.
 
-        features [n, S, 3N-3] as returned by :meth:`features`; ``joint_features`` [n, J, 3 (3N-3)] from
+        features [n, S, 3N-3] as returned by :meth:`features`; ``joint_features`` [n, J, joint_feature_dim] from
         :meth:`joint_features` (required with ``config.joint_tokens``).
         """
         _check("features", features, (None, self.num_slots, self.feature_dim))
@@ -592,7 +764,7 @@ class AppearancePredictor(_Streaming, nn.Module):
         if self.chain is not None:
             if joint_features is None:
                 raise ValueError("fit_input_normalization: config.joint_tokens needs joint_features")
-            _check("joint_features", joint_features, (features.shape[0], self.num_joints, 3 * self.feature_dim))
+            _check("joint_features", joint_features, (features.shape[0], self.num_joints, self.joint_feature_dim))
             pairs.append((joint_features, self.joint_feature_mean, self.joint_feature_scale))
         for f, mean_buf, scale_buf in pairs:
             f = f.double()
@@ -662,6 +834,10 @@ class AppearancePredictor(_Streaming, nn.Module):
         _check("root_rot_window", root_rot_window, (B, N, 3))
         _check("root_trans_window", root_trans_window, (B, N, 3))
         _check("prev_latents", prev_latents, (B, A, L))
+        if self.config.readout == "signals":
+            if feature_noise is not None:
+                raise ValueError("feature_noise: the signal readout has no pose-token features to perturb")
+            return self._signal_forward(pose_window, root_rot_window, root_trans_window, prev_latents)
         x, xj = self.input_features(pose_window, root_rot_window, root_trans_window)
         x = (x - self.feature_mean) * self.feature_scale
         if feature_noise is not None:
@@ -669,15 +845,49 @@ class AppearancePredictor(_Streaming, nn.Module):
             x = x + feature_noise * (self.feature_scale > 0)  # dropped (constant) features stay zero
         lat = (prev_latents - self.latent_mean) / self.latent_scale  # [B, A, L] standardised
         parts = [self.pose_tokens(x) + self.type_embedding[0]]
-        if xj is not None:
+        if xj is not None and self.config.joint_tokens:
             parts.append(
                 self.joint_tokens((xj - self.joint_feature_mean) * self.joint_feature_scale) + self.joint_type_embedding
             )
-        parts.append(self.latent_tokens(lat) + self.type_embedding[1])
+        if self.config.latent_tokens:
+            parts.append(self.latent_tokens(lat) + self.type_embedding[1])
+        else:
+            parts.append((self.anchor_queries + self.type_embedding[1]).expand(B, -1, -1))
         tokens = torch.cat(parts, 1)  # [B, S + J + A, D]
         h = self.norm(self.transformer(tokens + self.positional.to(tokens)))
-        base = prev_latents if self.config.residual else self.latent_mean
-        out = base + self.latent_scale * self.head(h[:, self.num_slots + self.num_joints :])  # [B, A, L]
+        ha = h[:, self.num_slots + (self.num_joints if self.config.joint_tokens else 0) :]  # [B, A, D] anchors
+        if self.config.gate:  # l_{t-1} + g (c - l_{t-1}), in standardised units
+            g = torch.sigmoid(self.gate_head(ha))
+            out = prev_latents + self.latent_scale * g * (self.head(ha) - lat)
+        else:
+            base = prev_latents if self.config.residual else self.latent_mean
+            out = base + self.latent_scale * self.head(ha)  # [B, A, L]
+        if self.config.readout == "both":  # the signals gate the transformer's answer toward their candidate
+            return self._signal_forward(pose_window, root_rot_window, root_trans_window, out)
+        return self.clamp_latents(out)
+
+    def _signal_forward(
+        self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor, prev_latents: Tensor
+    ) -> Tensor:
+        """Gated update of the global latent PCA's coefficients from the selected kinematic signal tokens
+        (:class:`PredictorConfig`): ``prev_latents`` are the previous frame's (``readout="signals"``) or the
+        transformer's answer for frame t (``"both"``). Same arguments and result as :meth:`forward`."""
+        B, K = prev_latents.shape[0], self.config.latent_pca_components
+        raw = self.joint_features(pose_window, root_rot_window, root_trans_window)  # [B, J, 4 N]
+        sig = ((raw - self.joint_feature_mean) * self.joint_feature_scale).reshape(B, -1, self.config.history)
+        tok = torch.cat([sig, self.signal_kind_code.to(sig).expand(B, -1, -1)], -1)  # [B, J*4, N + 4]
+        pooled = torch.einsum("ht,btd->bhd", torch.softmax(self.selection_logits, -1), self.signal_mlp(tok))
+        o = self.signal_out(pooled.reshape(B, -1))  # [B, 2K]
+        cand, gate = o[:, :K], torch.sigmoid(o[:, K:])
+        basis = self.global_basis  # [A*L, K], orthonormal columns
+        z = ((prev_latents - self.latent_mean) / self.latent_scale).flatten(1) @ basis  # [B, K]
+        now = torch.zeros_like(z)
+        if self.config.signal_pose_path:  # y = z + p: the state is what the current pose does not explain
+            last = pose_window[:, -2:] if pose_window.shape[1] >= 2 else pose_window[:, -1:].expand(-1, 2, -1)
+            p = self.signal_pose(self.initial_features(last.reshape(2 * B, -1))).reshape(B, 2, K)
+            z, now = z - p[:, 0], p[:, 1]
+        z = z + gate * (cand - z) + now
+        out = self.latent_mean + self.latent_scale * (z @ basis.T).unflatten(-1, prev_latents.shape[-2:])
         return self.clamp_latents(out)
 
     # ------------------------------------------------------------------ initial latents

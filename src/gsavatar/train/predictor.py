@@ -34,7 +34,13 @@ from torch import Tensor
 
 from gsavatar.data_schema.prepared import ProjectedTextures
 from gsavatar.geometry.lbs import KinematicChain
-from gsavatar.models.predictor import LEGACY_CONFIG, AppearancePredictor, PredictorConfig, PredictorEnsemble
+from gsavatar.models.predictor import (
+    LEGACY_CONFIG,
+    SELECTION_LR_SCALE,
+    AppearancePredictor,
+    PredictorConfig,
+    PredictorEnsemble,
+)
 from gsavatar.runs.checkpoint import load_checkpoint, resume_hint, save_checkpoint
 from gsavatar.runs.load import LoadedRun, load_run
 from gsavatar.train.sampler import step_generator
@@ -94,6 +100,10 @@ class PredictorTrainConfig:
     as ``predictor_train`` for resuming). The average starts at the initial weights (no warm-up correction): keep
     ``1 / (1 - ema)`` well below ``steps``. Measured worse than no average on `small` (docs/train.md); kept as an
     opt-in for longer trainings."""
+    selection_lr_scale: float = SELECTION_LR_SCALE
+    """Learning-rate multiplier of the signal readout's selection logits (``readout`` ``signals`` / ``both``; no
+    weight decay on them): softmax logits that start uniform over ~120 tokens must move by several units to select
+    a few; too fast and a selection saturates on the first correlated token it meets. Measured in docs/train.md."""
     seed: int = 0
     """Seed of initialisation and window sampling."""
     ensemble: int = 1
@@ -374,7 +384,7 @@ def build_predictor(
         if config.latent_pca == "global"
         else min(config.latent_pca_components, int(latent_dim)),
     )
-    kin = KinematicChain.from_rig(scene.capture.rig) if cfg.joint_tokens else None
+    kin = KinematicChain.from_rig(scene.capture.rig) if cfg.joint_tokens or cfg.readout != "transformer" else None
     return AppearancePredictor(
         cfg, scene.hierarchy.num_anchors, slots, scene.capture.rig.pose_dim, pose_pca, seed, kinematics=kin
     )
@@ -444,6 +454,17 @@ def evaluate_predictor(model: AppearancePredictor, data: SequenceData, segments:
 
 
 # ----------------------------------------------------------------------------- trainer
+def optimizer_groups(model: torch.nn.Module, lr: float, selection_lr_scale: float = SELECTION_LR_SCALE) -> list[dict]:
+    """AdamW parameter groups: everything at ``lr``; the signal readout's selection logits (if any) at
+    ``lr * selection_lr_scale`` without weight decay (one group, as before, for a model without them)."""
+    named = list(model.named_parameters())
+    sel = [p for n, p in named if n.split(".")[-1] == "selection_logits"]
+    rest = [p for n, p in named if n.split(".")[-1] != "selection_logits"]
+    if not sel:
+        return [{"params": rest}]
+    return [{"params": rest}, {"params": sel, "lr": lr * selection_lr_scale, "weight_decay": 0.0}]
+
+
 class PredictorTrainer:
     """Loop, AdamW, logging and atomic resumable checkpoints in ``out`` (latest.pt, metrics.jsonl).
 
@@ -475,7 +496,10 @@ class PredictorTrainer:
         self.model, self.data, self.cfg, self.out = model, data, cfg, Path(out)
         self.sampler = WindowSampler(train_segments, cfg.window)
         self.train_rows = torch.cat([torch.arange(s, e) for s, e in train_segments])
-        self.optim = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        if not (cfg.selection_lr_scale > 0 and math.isfinite(cfg.selection_lr_scale)):
+            raise ValueError(f"selection_lr_scale must be a finite number > 0, got {cfg.selection_lr_scale}")
+        groups = optimizer_groups(model, cfg.lr, cfg.selection_lr_scale)
+        self.optim = torch.optim.AdamW(groups, lr=cfg.lr, weight_decay=cfg.weight_decay)
         train = config_to_json(cfg, exclude=("model",))
         self.config = {
             "train": train,
