@@ -102,6 +102,34 @@ def fit_gated(X: np.ndarray, Y: np.ndarray, tr: np.ndarray, te: np.ndarray, step
     return {"test_per_state": per, "test_pooled": pooled, "train_pooled": r2(tr)[1]}
 
 
+def hysteresis_windows(capture: Path, tr: np.ndarray, te: np.ndarray, history: int = 10) -> list[dict]:
+    """For every hysteresis state: the share of training / test frames whose state an event (the signal at or
+    beyond a threshold) inside the last ``history`` frames decides, i.e. what a window of the signal can tell."""
+    z = np.load(capture / "gt" / "motion_states.npz")
+    effects = json.loads((capture / "gt" / "states.json").read_text())["motion_effects"]
+    out = []
+    for k, name in enumerate(str(n) for n in z["names"]):
+        c = effects.get(name, {}).get("constants", {})
+        if not {"low", "high"} <= set(c):
+            continue
+        u = z["signals"][:, k]
+        event = (u >= c["high"]) | (u <= c["low"])
+        last, back = -(10**9), np.empty(len(u), dtype=np.int64)
+        for t in range(len(u)):
+            last = t if event[t] else last
+            back[t] = t - last
+        decided = back < history
+        out.append(
+            {
+                "state": name,
+                "window": history,
+                "decided_train": float(decided[tr].mean()),
+                "decided_test": float(decided[te].mean()),
+            }
+        )
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--capture", type=Path, required=True)
@@ -116,6 +144,9 @@ def main() -> None:
     x, xj, lv, tr, te, names, joints = capture_features(a.capture)
     F, J = xj.shape[:2]
     speeds = xj[:, :, -9:]  # the N_b - 1 = 9 speeds of every joint
+    windows = hysteresis_windows(a.capture, tr, te)
+    for w in windows:
+        print(json.dumps(w))
     rows = []
     for inp in a.inputs:
         if inp == "all":
@@ -147,6 +178,7 @@ def main() -> None:
             "states": names,
             "train_frames": int(len(tr)),
             "test_frames": int(len(te)),
+            "hysteresis_decided_by_the_window": windows,
             "rows": rows,
         }
         a.json.write_text(json.dumps(out, indent=1))
