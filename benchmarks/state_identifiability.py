@@ -25,7 +25,11 @@ import numpy as np
 import torch
 
 
-def capture_features(capture: Path, history: int = 10):
+HISTORY = 10
+"""N_b: frames in the window (the paper's)."""
+
+
+def capture_features(capture: Path, history: int = HISTORY):
     """(pose-slot features [F, S*F1], joint features [F, J, 3F+N-1], levels [F, E], train, test, names, joint names)"""
     from gsavatar.data_schema import load_capture
     from gsavatar.geometry.lbs import KinematicChain
@@ -76,7 +80,10 @@ def fit_gated(X: np.ndarray, Y: np.ndarray, tr: np.ndarray, te: np.ndarray, step
         return s + torch.sigmoid(o[..., E:]) * (o[..., :E] - s)
 
     win, B = 8, 8
-    starts = torch.as_tensor(np.arange(tr[0] + 1, tr[-1] - win + 2))
+    from gsavatar.train.predictor import split_segments
+
+    segments = split_segments(np.arange(len(Y)), tr)  # windows stay inside runs of consecutive training frames
+    starts = torch.as_tensor([k for s, e in segments for k in range(s + 1, e - win + 1)])
     gen = torch.Generator().manual_seed(seed)
     for _ in range(steps):
         b = starts[torch.randint(len(starts), (B,), generator=gen)]
@@ -102,7 +109,7 @@ def fit_gated(X: np.ndarray, Y: np.ndarray, tr: np.ndarray, te: np.ndarray, step
     return {"test_per_state": per, "test_pooled": pooled, "train_pooled": r2(tr)[1]}
 
 
-def hysteresis_windows(capture: Path, tr: np.ndarray, te: np.ndarray, history: int = 10) -> list[dict]:
+def hysteresis_windows(capture: Path, tr: np.ndarray, te: np.ndarray, history: int = HISTORY) -> list[dict]:
     """For every hysteresis state: the share of training / test frames whose state an event (the signal at or
     beyond a threshold) inside the last ``history`` frames decides, i.e. what a window of the signal can tell."""
     z = np.load(capture / "gt" / "motion_states.npz")
@@ -143,7 +150,7 @@ def main() -> None:
 
     x, xj, lv, tr, te, names, joints = capture_features(a.capture)
     F, J = xj.shape[:2]
-    speeds = xj[:, :, -9:]  # the N_b - 1 = 9 speeds of every joint
+    speeds = xj[:, :, -(HISTORY - 1) :]  # the N_b - 1 speeds of every joint
     windows = hysteresis_windows(a.capture, tr, te)
     for w in windows:
         print(json.dumps(w))

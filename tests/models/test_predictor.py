@@ -665,6 +665,14 @@ def test_signal_readout_options_are_validated_and_its_logits_train_faster():
         AppearancePredictor(PredictorConfig(**{**base, "joint_tokens": True}), A, [0], P2, kinematics=kin)
     with pytest.raises(ValueError, match="readout='signals' needs the rig's kinematics"):
         AppearancePredictor(PredictorConfig(**base), A, [0], P2)
+    with pytest.raises(ValueError, match="gate and latent_tokens shape the transformer"):
+        AppearancePredictor(PredictorConfig(**{**base, "gate": True}), A, [0], P2, kinematics=kin)
+    with pytest.raises(ValueError, match="signal_pose_path is for readout='signals'"):
+        AppearancePredictor(PredictorConfig(**{**base, "readout": "transformer", "signal_pose_path": True}), A, [0], P2)
+    unfit = AppearancePredictor(PredictorConfig(**base), A, [0, 1], P2, kinematics=kin)  # no latent PCA yet
+    pose, rot, trans = joint_seq(N, P2)
+    prev = torch.randn(1, A, L)
+    assert torch.equal(unfit(pose[None], rot[None], trans[None], prev), prev)  # nothing to update: persistence
     with pytest.raises(ValueError, match="config.readout must be"):
         AppearancePredictor(PredictorConfig(**{**base, "readout": "mlp"}), A, [0], P2, kinematics=kin)
     m = signal_model()

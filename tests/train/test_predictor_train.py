@@ -434,3 +434,12 @@ def test_signal_readout_learns_a_height_hysteresis_and_resumes(tmp_path):
     torch.testing.assert_close(
         c.rollout(data.pose[s:e], data.root_rotation[s:e], data.root_translation[s:e], c.zero_latents()), out
     )
+    # a resumed run takes this run's selection learning rate, not the one saved with the optimizer
+    m2 = AppearancePredictor(cfg, A, list(range(Pr)), Pr, seed=0, kinematics=kin)
+    prepare_model(m2, data, train)
+    tr2 = PredictorTrainer(
+        m2, data, train, train_cfg(steps=600, lr=3e-3, model=cfg, selection_lr_scale=7.0), tmp_path / "b"
+    )
+    assert tr2.step == 600 and [g["lr"] for g in tr2.optim.param_groups] == pytest.approx([3e-3, 3e-3 * 7.0])
+    with pytest.raises(ValueError, match="feature_noise perturbs the pose-token features"):
+        PredictorTrainer(m2, data, train, train_cfg(model=cfg, feature_noise=0.1), tmp_path / "c")

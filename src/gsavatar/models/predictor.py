@@ -568,9 +568,13 @@ class AppearancePredictor(_Streaming, nn.Module):
                 "config.readout='signals' reads its own joint signals over the window of N_b frames: "
                 "joint_tokens, memory_timescales cannot be combined with it"
             )
-        if c.readout == "both" and c.signal_pose_path:
+        if c.signal_pose_path and c.readout != "signals":
             raise ValueError(
                 "config.signal_pose_path is for readout='signals' (with 'both' the transformer has the pose)"
+            )
+        if c.readout == "signals" and (c.gate or not c.latent_tokens):
+            raise ValueError(
+                "config.gate and latent_tokens shape the transformer, which readout='signals' does not build"
             )
         if signals and (c.signal_heads < 1 or c.signal_hidden < 1):
             raise ValueError(
@@ -863,17 +867,27 @@ class AppearancePredictor(_Streaming, nn.Module):
             base = prev_latents if self.config.residual else self.latent_mean
             out = base + self.latent_scale * self.head(ha)  # [B, A, L]
         if self.config.readout == "both":  # the signals gate the transformer's answer toward their candidate
-            return self._signal_forward(pose_window, root_rot_window, root_trans_window, out)
+            return self._signal_forward(pose_window, root_rot_window, root_trans_window, out, xj)
         return self.clamp_latents(out)
 
     def _signal_forward(
-        self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor, prev_latents: Tensor
+        self,
+        pose_window: Tensor,
+        root_rot_window: Tensor,
+        root_trans_window: Tensor,
+        prev_latents: Tensor,
+        raw: Tensor | None = None,
     ) -> Tensor:
         """Gated update of the global latent PCA's coefficients from the selected kinematic signal tokens
         (:class:`PredictorConfig`): ``prev_latents`` are the previous frame's (``readout="signals"``) or the
-        transformer's answer for frame t (``"both"``). Same arguments and result as :meth:`forward`."""
+        transformer's answer for frame t (``"both"``); ``raw``: the :meth:`joint_features` of the window when the
+        caller has them. Before the latent PCA is fit there is no state to update: ``prev_latents`` are returned.
+        Same arguments and result as :meth:`forward`."""
+        if not bool(self.latent_pca_ready):
+            return prev_latents
         B, K = prev_latents.shape[0], self.config.latent_pca_components
-        raw = self.joint_features(pose_window, root_rot_window, root_trans_window)  # [B, J, 4 N]
+        if raw is None:
+            raw = self.joint_features(pose_window, root_rot_window, root_trans_window)  # [B, J, 4 N]
         sig = ((raw - self.joint_feature_mean) * self.joint_feature_scale).reshape(B, -1, self.config.history)
         tok = torch.cat([sig, self.signal_kind_code.to(sig).expand(B, -1, -1)], -1)  # [B, J*4, N + 4]
         pooled = torch.einsum("ht,btd->bhd", torch.softmax(self.selection_logits, -1), self.signal_mlp(tok))

@@ -496,6 +496,8 @@ class PredictorTrainer:
         self.model, self.data, self.cfg, self.out = model, data, cfg, Path(out)
         self.sampler = WindowSampler(train_segments, cfg.window)
         self.train_rows = torch.cat([torch.arange(s, e) for s, e in train_segments])
+        if cfg.feature_noise > 0 and model.config.readout == "signals":
+            raise ValueError("feature_noise perturbs the pose-token features, which readout='signals' does not have")
         if not (cfg.selection_lr_scale > 0 and math.isfinite(cfg.selection_lr_scale)):
             raise ValueError(f"selection_lr_scale must be a finite number > 0, got {cfg.selection_lr_scale}")
         groups = optimizer_groups(model, cfg.lr, cfg.selection_lr_scale)
@@ -537,6 +539,8 @@ class PredictorTrainer:
             else:
                 model.load_state_dict(state["modules"]["predictor"])
             self.optim.load_state_dict(state["optimizer"])
+            for g, want in zip(self.optim.param_groups, groups):  # this run's learning rates, not the saved ones
+                g["lr"] = want.get("lr", cfg.lr)
             self.step = int(state["step"])
 
     @property
