@@ -96,7 +96,7 @@ def main() -> None:
         cap.rig.pose_dim,
         None,
         seed=a.seed,
-        kinematics=KinematicChain.from_rig(cap.rig) if a.joint_tokens or a.signals else None,
+        kinematics=KinematicChain.from_rig(cap.rig) if cfg.needs_kinematics else None,
     )
     train_frames = np.asarray(cap.splits["train"].frames)
     if a.train_frames is not None:  # one change: the amount of training data, the test frames unchanged

@@ -24,16 +24,15 @@ import numpy as np
 import torch
 
 
-def true_state_latents(
-    capture_root: Path, targets, frames: list[int], ridge: float = 1e-3, held: int | None = None
-) -> torch.Tensor:
+def true_state_latents(capture_root: Path, targets, frames: list[int], ridge: float = 1e-3) -> dict[str, torch.Tensor]:
     """Latents of ``frames`` read from the true states by a ridge fit on the training frames' encoder latents.
 
     The states are ``gt/motion_states.npz`` levels, standardised on the training frames; the read-out is affine
-    (a perfect predictor of the states, rendered through the best linear map to the latent space). ``held``: that
-    state is replaced by its training mean in the frames read out (a perfect predictor of every other state that
-    never learnt this one). -> [T, A, L]"""
-    levels = np.load(capture_root / "gt" / "motion_states.npz")["levels"].astype(np.float64)  # [F, E]
+    (a perfect predictor of the states, rendered through the best linear map to the latent space). One fit; the
+    read-outs: ``""`` of every state, and for each state name the same with that state held at its training mean (a
+    perfect predictor of every other state that never learnt this one). -> {"" or name: [T, A, L]}"""
+    z = np.load(capture_root / "gt" / "motion_states.npz")
+    levels, names = z["levels"].astype(np.float64), [str(n) for n in z["names"]]  # [F, E]
     lat = np.asarray(targets.latents, dtype=np.float64)  # [n, A, L]
     shape = lat.shape[1:]
     from gsavatar.data_schema.capture import load_capture
@@ -45,9 +44,14 @@ def true_state_latents(
     X = np.c_[(levels - mu) / sd, np.ones(len(levels))]
     A, Y = X[ftr], lat[rows].reshape(len(rows), -1)
     W = np.linalg.solve(A.T @ A + ridge * len(rows) * np.eye(A.shape[1]), A.T @ Y)
-    if held is not None:
-        X[:, held] = 0.0  # the standardised training mean
-    return torch.as_tensor((X[np.asarray(frames)] @ W).reshape(len(frames), *shape), dtype=torch.float32)
+    Xf = X[np.asarray(frames)]
+    out = {}
+    for held, name in [(None, "")] + list(enumerate(names)):
+        Xh = Xf.copy()
+        if held is not None:
+            Xh[:, held] = 0.0  # the standardised training mean
+        out[name] = torch.as_tensor((Xh @ W).reshape(len(frames), *shape), dtype=torch.float32)
+    return out
 
 
 def main() -> None:
@@ -112,10 +116,8 @@ def main() -> None:
     if a.oracles:
         first = predictor_from_checkpoint(Path(a.predictors[0].partition("=")[2].split("+")[0]))
         sources["oracle: encoder clamped"] = first.clamp_latents(enc)
-        sources["oracle: true states"] = true_state_latents(cap.root, targets, frames)
-        names = [str(n) for n in np.load(cap.root / "gt" / "motion_states.npz")["names"]]
-        for i, n in enumerate(names):
-            sources[f"oracle: true states, {n} at its mean"] = true_state_latents(cap.root, targets, frames, held=i)
+        for n, lat in true_state_latents(cap.root, targets, frames).items():
+            sources["oracle: true states" + (f", {n} at its mean" if n else "")] = lat
     picks = list(range(0, T, a.every))
     sse = {k: 0.0 for k in sources}
     npx = 0

@@ -203,6 +203,16 @@ class PredictorConfig:
         longest = max(self.memory_timescales, default=0.0)
         return max(self.history, math.ceil(3.0 * longest))
 
+    @property
+    def signal_readout(self) -> bool:
+        """Whether the kinematic signal readout is built (``readout`` ``signals`` or ``both``)."""
+        return self.readout in ("signals", "both")
+
+    @property
+    def needs_kinematics(self) -> bool:
+        """Whether the predictor runs the rig's forward kinematics (joint tokens or the signal readout)."""
+        return self.joint_tokens or self.signal_readout
+
     def to_json(self) -> dict:
         """Plain-JSON form (the predictor checkpoint's config, checked on resume)."""
         return config_to_json(self)
@@ -560,7 +570,7 @@ class AppearancePredictor(_Streaming, nn.Module):
             raise ValueError("config.latent_tokens=False needs config.gate (the previous latents enter through it)")
         if c.readout not in ("transformer", "signals", "both"):
             raise ValueError(f"config.readout must be 'transformer', 'signals' or 'both', got {c.readout!r}")
-        signals = c.readout in ("signals", "both")
+        signals = c.signal_readout
         if signals and c.latent_pca != "global":
             raise ValueError("config.readout='signals' needs config.latent_pca='global' (its state is the PCA's)")
         if signals and (c.joint_tokens or c.memory_timescales):
@@ -584,7 +594,7 @@ class AppearancePredictor(_Streaming, nn.Module):
             raise ValueError("config.joint_speeds needs config.joint_tokens (the speeds ride on the joint tokens)")
         Fdim = (3 * c.history - 3 if c.velocities else c.history) + 3 * len(c.memory_timescales)
         self.chain: KinematicChain | None = None
-        if c.joint_tokens or signals:
+        if c.needs_kinematics:
             if kinematics is None:
                 what = "joint_tokens" if c.joint_tokens else "readout='signals'"
                 raise ValueError(f"config.{what} needs the rig's kinematics (KinematicChain), got None")
@@ -595,7 +605,7 @@ class AppearancePredictor(_Streaming, nn.Module):
             self.root_joint = int(np.flatnonzero(self.chain.parents() < 0)[0])
         J = self.chain.num_joints if self.chain is not None else 0
         self.num_slots, self.num_joints, self.feature_dim = S, J, Fdim
-        Jt = J if c.joint_tokens else 0  # the transformer's joint tokens
+        Jt = self.num_joint_tokens = J if c.joint_tokens else 0  # the transformer's joint tokens
         if signals:
             self.joint_feature_dim = len(SIGNAL_KINDS) * c.history  # [kind, frame] flattened
         else:
@@ -715,7 +725,7 @@ class AppearancePredictor(_Streaming, nn.Module):
             raise ValueError("joint_features needs config.joint_tokens")
         q = self.heading_joints(pose_window, root_rot_window, root_trans_window)  # [B, N, J, 3]
         B, N, J, _ = q.shape
-        if self.config.readout in ("signals", "both"):
+        if self.config.signal_readout:
             sig = signal_features(q, self.root_joint)  # [B, J, 4, N]
             if not self.config.velocities:  # values only: the heights (the no-history ablation with N_b = 1)
                 sig = sig * torch.tensor([0.0, 1.0, 0.0, 0.0], dtype=sig.dtype, device=sig.device)[:, None]
@@ -849,7 +859,7 @@ class AppearancePredictor(_Streaming, nn.Module):
             x = x + feature_noise * (self.feature_scale > 0)  # dropped (constant) features stay zero
         lat = (prev_latents - self.latent_mean) / self.latent_scale  # [B, A, L] standardised
         parts = [self.pose_tokens(x) + self.type_embedding[0]]
-        if xj is not None and self.config.joint_tokens:
+        if self.num_joint_tokens:
             parts.append(
                 self.joint_tokens((xj - self.joint_feature_mean) * self.joint_feature_scale) + self.joint_type_embedding
             )
@@ -859,7 +869,7 @@ class AppearancePredictor(_Streaming, nn.Module):
             parts.append((self.anchor_queries + self.type_embedding[1]).expand(B, -1, -1))
         tokens = torch.cat(parts, 1)  # [B, S + J + A, D]
         h = self.norm(self.transformer(tokens + self.positional.to(tokens)))
-        ha = h[:, self.num_slots + (self.num_joints if self.config.joint_tokens else 0) :]  # [B, A, D] anchors
+        ha = h[:, self.num_slots + self.num_joint_tokens :]  # [B, A, D] the anchors' tokens
         if self.config.gate:  # l_{t-1} + g (c - l_{t-1}), in standardised units
             g = torch.sigmoid(self.gate_head(ha))
             out = prev_latents + self.latent_scale * g * (self.head(ha) - lat)

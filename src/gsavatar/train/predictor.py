@@ -384,7 +384,7 @@ def build_predictor(
         if config.latent_pca == "global"
         else min(config.latent_pca_components, int(latent_dim)),
     )
-    kin = KinematicChain.from_rig(scene.capture.rig) if cfg.joint_tokens or cfg.readout != "transformer" else None
+    kin = KinematicChain.from_rig(scene.capture.rig) if cfg.needs_kinematics else None
     return AppearancePredictor(
         cfg, scene.hierarchy.num_anchors, slots, scene.capture.rig.pose_dim, pose_pca, seed, kinematics=kin
     )
