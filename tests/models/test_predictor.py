@@ -719,6 +719,57 @@ def test_signal_pose_path_adds_the_current_poses_part_and_feeds_back_the_state()
     assert (p(N - 1) - p(N - 2)).abs().max() > 1e-3 and K == p(0).numel()
 
 
+def test_orientation_features_are_the_rotation_matrix_columns():
+    from gsavatar.models.predictor import orientation_features
+
+    g = torch.Generator().manual_seed(2)
+    aa = torch.randn(7, 3, generator=g, dtype=torch.float64)
+    R = axis_angle_to_matrix(aa)
+    f = orientation_features(aa)
+    for b in range(7):  # naive: column 0 then column 1
+        torch.testing.assert_close(f[b], torch.cat([R[b, :, 0], R[b, :, 1]]))
+    yaw = torch.tensor([[0.0, 1.2, 0.0]], dtype=torch.float64)  # a turn about +Y moves the facing columns
+    assert (orientation_features(yaw) - orientation_features(torch.zeros(1, 3, dtype=torch.float64))).abs().max() > 0.5
+
+
+def test_signal_orientation_makes_the_pose_path_see_which_way_the_body_faces():
+    """Every other input of the signal readout is in the heading frame (a yaw of the whole motion changes nothing);
+    with ``signal_orientation`` the pose path reads the root's world orientation, as its naive form says."""
+    from gsavatar.models.predictor import orientation_features
+
+    m = signal_model(signal_pose_path=True, signal_orientation=True)
+    g = torch.Generator().manual_seed(9)
+    with torch.no_grad():
+        m.signal_pose[-1].weight.copy_(torch.randn(m.signal_pose[-1].weight.shape, generator=g))
+    pose, rot, trans = joint_seq(N, m.pose_dim, seed=4)
+    yawed = matrix_to_axis_angle(axis_angle_to_matrix(torch.tensor([0.0, 1.0, 0.0])) @ axis_angle_to_matrix(rot))
+    prev = m.latent_mean[None].clone()
+    a = m(pose[None], rot[None], trans[None], prev)[0]
+    b = m(pose[None], yawed[None], trans[None], prev)[0]
+    assert (a - b).abs().max() > 1e-3  # the turn shows
+    coef = lambda lat: ((lat - m.latent_mean) / m.latent_scale).flatten() @ m.global_basis  # noqa: E731
+    p = (
+        lambda r, f: m.signal_pose(  # noqa: E731  naive instantaneous part of frame f  [K]
+            torch.cat([m.initial_features(pose[f : f + 1]), orientation_features(r[f : f + 1])], -1)
+        )[0].detach()
+    )
+    base = signal_model()  # the same weights but the pose path: blind to the turn
+    base.load_state_dict({k: v for k, v in m.state_dict().items() if not k.startswith("signal_pose.")})
+    torch.testing.assert_close(
+        base(pose[None], rot[None], trans[None], prev),
+        base(pose[None], yawed[None], trans[None], prev),
+        atol=1e-5,
+        rtol=0,
+    )
+    for r, out in ((rot, a), (yawed, b)):  # y_t = gated step of z_{t-1} = y_{t-1} - p_{t-1}, plus p_t
+        z_prev = coef(prev[0]) - p(r, N - 2)
+        prev_state = m.latent_mean + m.latent_scale * (m.global_basis @ z_prev).reshape(A, L)
+        step = coef(base(pose[None], r[None], trans[None], prev_state[None])[0])
+        torch.testing.assert_close(coef(out), step + p(r, N - 1), atol=1e-4, rtol=1e-4)
+    with pytest.raises(ValueError, match="signal_orientation is an input of the pose path"):
+        signal_model(signal_orientation=True)
+
+
 def test_both_readouts_gate_the_transformers_answer_toward_the_signals_candidate():
     m = signal_model(readout="both")
     tr = signal_model(readout="transformer", joint_tokens=False)  # the same transformer weights, no signals

@@ -73,6 +73,16 @@ from gsavatar.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_ang
 from gsavatar.models.mlp import AnchorMLPs
 from gsavatar.utils.jsonio import config_to_json
 
+ORIENTATION_FEATURES = 6
+"""Inputs of :func:`orientation_features`."""
+
+
+def orientation_features(root_rotation: Tensor) -> Tensor:
+    """The root's world orientation as the first two columns of its rotation matrix (continuous, unlike the
+    axis-angle; with the third column implied).  [B, 3] axis-angle -> [B, 6]"""
+    return axis_angle_to_matrix(root_rotation)[..., :2].transpose(-1, -2).reshape(*root_rotation.shape[:-1], 6)
+
+
 SIGNAL_KINDS = ("speed", "height", "vertical_velocity", "vertical_acceleration")
 """The kinematic signal tokens of every joint (``PredictorConfig.readout = "signals"``), :func:`signal_features`."""
 
@@ -188,6 +198,12 @@ class PredictorConfig:
     (shading baked into the projected textures, cloth that follows a joint) needs no memory; the state then holds
     only what the motion's history adds. The state fed back is ``z_{t-1} = y_{t-1} - p_{t-1}`` with frame t-1's
     pose from the window (with N_b = 1, frame t's). Measured in docs/train.md."""
+    signal_orientation: bool = False
+    """With ``signal_pose_path``: the instantaneous part also reads the root's world orientation (the first two
+    columns of its rotation matrix). A capture lit by lights fixed in the room bakes shading into its textures that
+    follows which way the body faces and leans, a function of the current root orientation that a pose-conditioned
+    avatar in canonical space cannot model and the latents take; every other signal of this readout is in the body's
+    heading frame and blind to it. Measured in docs/train.md."""
     signal_heads: int = 8
     """Softmax selections over the signal tokens (``readout="signals"``)."""
     signal_hidden: int = 32
@@ -582,6 +598,8 @@ class AppearancePredictor(_Streaming, nn.Module):
             raise ValueError(
                 "config.signal_pose_path is for readout='signals' (with 'both' the transformer has the pose)"
             )
+        if c.signal_orientation and not c.signal_pose_path:
+            raise ValueError("config.signal_orientation is an input of the pose path: it needs signal_pose_path")
         if c.readout == "signals" and (c.gate or not c.latent_tokens):
             raise ValueError(
                 "config.gate and latent_tokens shape the transformer, which readout='signals' does not build"
@@ -606,6 +624,9 @@ class AppearancePredictor(_Streaming, nn.Module):
         J = self.chain.num_joints if self.chain is not None else 0
         self.num_slots, self.num_joints, self.feature_dim = S, J, Fdim
         Jt = self.num_joint_tokens = J if c.joint_tokens else 0  # the transformer's joint tokens
+        self.signals_only = False
+        """Training-time switch (``readout="both"``, not saved): the transformer is skipped and the signal readout
+        updates the previous latents alone, as ``readout="signals"`` (``PredictorTrainConfig.signal_warmup_steps``)."""
         if signals:
             self.joint_feature_dim = len(SIGNAL_KINDS) * c.history  # [kind, frame] flattened
         else:
@@ -659,6 +680,7 @@ class AppearancePredictor(_Streaming, nn.Module):
             P_in = (
                 int(self.pose_pca_basis.shape[1]) if self.pose_pca_basis is not None else int(self.pose_slots.numel())
             )
+            P_in += ORIENTATION_FEATURES if c.signal_orientation else 0
             self.signal_pose = nn.Sequential(nn.Linear(P_in, H), nn.ReLU(), nn.Linear(H, K))
             with torch.no_grad():
                 self.signal_pose[-1].weight.zero_()
@@ -848,8 +870,8 @@ class AppearancePredictor(_Streaming, nn.Module):
         _check("root_rot_window", root_rot_window, (B, N, 3))
         _check("root_trans_window", root_trans_window, (B, N, 3))
         _check("prev_latents", prev_latents, (B, A, L))
-        if self.config.readout == "signals":
-            if feature_noise is not None:
+        if self.config.readout == "signals" or (self.signals_only and self.config.readout == "both"):
+            if feature_noise is not None and self.config.readout == "signals":
                 raise ValueError("feature_noise: the signal readout has no pose-token features to perturb")
             return self._signal_forward(pose_window, root_rot_window, root_trans_window, prev_latents)
         x, xj = self.input_features(pose_window, root_rot_window, root_trans_window)
@@ -908,7 +930,13 @@ class AppearancePredictor(_Streaming, nn.Module):
         now = torch.zeros_like(z)
         if self.config.signal_pose_path:  # y = z + p: the state is what the current pose does not explain
             last = pose_window[:, -2:] if pose_window.shape[1] >= 2 else pose_window[:, -1:].expand(-1, 2, -1)
-            p = self.signal_pose(self.initial_features(last.reshape(2 * B, -1))).reshape(B, 2, K)
+            f = self.initial_features(last.reshape(2 * B, -1))
+            if self.config.signal_orientation:
+                rot = (
+                    root_rot_window[:, -2:] if pose_window.shape[1] >= 2 else root_rot_window[:, -1:].expand(-1, 2, -1)
+                )
+                f = torch.cat([f, orientation_features(rot.reshape(2 * B, 3))], -1)
+            p = self.signal_pose(f).reshape(B, 2, K)
             z, now = z - p[:, 0], p[:, 1]
         z = z + gate * (cand - z) + now
         out = self.latent_mean + self.latent_scale * (z @ basis.T).unflatten(-1, prev_latents.shape[-2:])
@@ -933,8 +961,31 @@ class AppearancePredictor(_Streaming, nn.Module):
         return self.clamp_latents(self.latent_mean + self.latent_scale * self.initial(self.initial_features(pose)))
 
 
+_ENSEMBLE_FIELDS = (
+    "history",
+    "velocities",
+    "latent_dim",
+    "latent_pca",
+    "latent_pca_components",
+    "clamp_sigma",
+    "zero_context",
+)
+"""What the members of an ensemble must share: the window they read and the latent space they write. The readout
+and its architecture may differ (a transformer and a signal readout average like two seeds of one)."""
+_FITTED_BUFFERS = ("latent_mean", "latent_scale")
+"""Data statistics fit from the training targets; equal in members of one run, so checked."""
+
+
+def _ensemble_interface(m: nn.Module) -> dict:
+    return {
+        "anchors": m.num_anchors,
+        "pose_dim": m.pose_dim,
+        **{f: getattr(m.config, f) for f in _ENSEMBLE_FIELDS},
+    }
+
+
 class PredictorEnsemble(_Streaming, nn.Module):
-    """K appearance predictors of one configuration, trained from different seeds, averaged at every step.
+    """K appearance predictors that share an interface, trained from different seeds, averaged at every step.
 
     One frame's latents are the mean of the members' (clamped) predictions from the same pose window and the
     same previous latents, and that mean is what is fed back: the ensemble streams and rolls out exactly like
@@ -955,11 +1006,13 @@ class PredictorEnsemble(_Streaming, nn.Module):
             raise ValueError("members: an ensemble needs at least one predictor")
         m0 = members[0]
         for i, m in enumerate(members[1:], 1):
-            if (m.config, m.num_anchors, m.pose_dim) != (m0.config, m0.num_anchors, m0.pose_dim):
-                raise ValueError(
-                    f"members[{i}]: config/anchors/pose_dim differ from members[0]'s "
-                    f"({m.num_anchors}, {m.pose_dim} vs {m0.num_anchors}, {m0.pose_dim})"
-                )
+            key, key0 = _ensemble_interface(m), _ensemble_interface(m0)
+            if key != key0:
+                diff = {k: (key[k], key0[k]) for k in key if key[k] != key0[k]}
+                raise ValueError(f"members[{i}]: differs from members[0] in what an ensemble shares: {diff}")
+            for name, buf in m0.named_buffers():
+                if name in _FITTED_BUFFERS and not torch.equal(buf, dict(m.named_buffers())[name]):
+                    raise ValueError(f"members[{i}]: its fitted {name} differs from members[0]'s (another run's?)")
         self.members = nn.ModuleList(members)
         self.config, self.num_anchors, self.pose_dim = m0.config, m0.num_anchors, m0.pose_dim
 

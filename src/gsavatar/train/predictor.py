@@ -104,6 +104,13 @@ class PredictorTrainConfig:
     """Learning-rate multiplier of the signal readout's selection logits (``readout`` ``signals`` / ``both``; no
     weight decay on them): softmax logits that start uniform over ~120 tokens must move by several units to select
     a few; too fast and a selection saturates on the first correlated token it meets. Measured in docs/train.md."""
+    signal_warmup_steps: int = 0
+    """With ``model.readout = "both"``: the first this many steps train the signal readout alone (the transformer is
+    skipped, the signals update the previous latents as ``readout = "signals"`` does), then both train together
+    (``steps`` counts both phases). Jointly from the start, the transformer fits the training sequence (it can tell
+    every training window apart) before the selections have found the joints that drive the appearance, and the
+    signals' gradient fades; a warm-up lets the selections settle first. 0 = joint from the start. Measured in
+    docs/train.md."""
     seed: int = 0
     """Seed of initialisation and window sampling."""
     ensemble: int = 1
@@ -498,6 +505,13 @@ class PredictorTrainer:
         self.train_rows = torch.cat([torch.arange(s, e) for s, e in train_segments])
         if cfg.feature_noise > 0 and model.config.readout == "signals":
             raise ValueError("feature_noise perturbs the pose-token features, which readout='signals' does not have")
+        if cfg.signal_warmup_steps < 0:
+            raise ValueError(f"signal_warmup_steps must be >= 0, got {cfg.signal_warmup_steps}")
+        if cfg.signal_warmup_steps > 0 and model.config.readout != "both":
+            raise ValueError(
+                f"signal_warmup_steps = {cfg.signal_warmup_steps} needs model.readout = 'both' (got "
+                f"{model.config.readout!r}): it trains the signal readout alone before the transformer joins"
+            )
         if not (cfg.selection_lr_scale > 0 and math.isfinite(cfg.selection_lr_scale)):
             raise ValueError(f"selection_lr_scale must be a finite number > 0, got {cfg.selection_lr_scale}")
         groups = optimizer_groups(model, cfg.lr, cfg.selection_lr_scale)
@@ -596,6 +610,8 @@ class PredictorTrainer:
         t0, n0, logs = time.perf_counter(), self.step, {}
         self.model.train()
         while self.step < stop:
+            for m in self.members:  # from the step, so a resumed run is in the right phase
+                m.signals_only = self.step < cfg.signal_warmup_steps
             loss, logs = self.loss(self.step)
             self.optim.zero_grad(set_to_none=True)
             loss.backward()
@@ -617,6 +633,8 @@ class PredictorTrainer:
                 )
             if self.step % cfg.checkpoint_every == 0 or self.step == stop:
                 self.save()
+        for m in self.members:
+            m.signals_only = False
         self.model.eval()
         self.result.eval()
         return {"step": self.step, **logs, "seconds": time.perf_counter() - t0}
