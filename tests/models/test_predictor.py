@@ -157,6 +157,28 @@ def test_rigid_transform_of_root_motion_leaves_prediction_unchanged():
     assert not torch.allclose(m(pose[None], rot[None], trans3[None], prev), a, atol=1e-4)
 
 
+def test_world_orientation_gives_the_transformer_the_roots_world_orientation_slots():
+    """``world_orientation``: six more slots, the rotation matrix's first two columns over the window (naive form);
+    a turn of the whole motion now changes the prediction (the model without it is invariant, test above)."""
+    from gsavatar.models.predictor import orientation_features
+
+    m = model(world_orientation=True)
+    base = model()
+    assert m.num_slots == base.num_slots + 6 and m.pose_tokens.num_anchors == m.num_slots
+    pose, rot, trans = seq(N)
+    x = m.slot_values(pose[None], rot[None], trans[None])[0]  # [N, S]
+    torch.testing.assert_close(x[:, : base.num_slots], base.slot_values(pose[None], rot[None], trans[None])[0])
+    for k in range(N):
+        R = axis_angle_to_matrix(rot[k].double())
+        torch.testing.assert_close(x[k, -6:].double(), torch.cat([R[:, 0], R[:, 1]]), atol=1e-6, rtol=0)
+    torch.testing.assert_close(x[:, -6:], orientation_features(rot))
+    Q = random_rotation(torch.Generator().manual_seed(3))
+    rot2 = matrix_to_axis_angle(Q @ axis_angle_to_matrix(rot.double())).float()
+    prev = torch.randn(1, A, L)
+    a, b = m(pose[None], rot[None], trans[None], prev), m(pose[None], rot2[None], trans[None], prev)
+    assert (a - b).abs().max() > 1e-3
+
+
 def test_latent_pca_clamp_box():
     g = torch.Generator().manual_seed(0)
     lat = torch.randn(200, A, L, generator=g) * torch.linspace(0.1, 2.0, L) + 3.0
@@ -732,12 +754,12 @@ def test_orientation_features_are_the_rotation_matrix_columns():
     assert (orientation_features(yaw) - orientation_features(torch.zeros(1, 3, dtype=torch.float64))).abs().max() > 0.5
 
 
-def test_signal_orientation_makes_the_pose_path_see_which_way_the_body_faces():
+def test_world_orientation_makes_the_pose_path_see_which_way_the_body_faces():
     """Every other input of the signal readout is in the heading frame (a yaw of the whole motion changes nothing);
-    with ``signal_orientation`` the pose path reads the root's world orientation, as its naive form says."""
+    with ``world_orientation`` the pose path reads the root's world orientation, as its naive form says."""
     from gsavatar.models.predictor import orientation_features
 
-    m = signal_model(signal_pose_path=True, signal_orientation=True)
+    m = signal_model(signal_pose_path=True, world_orientation=True)
     g = torch.Generator().manual_seed(9)
     with torch.no_grad():
         m.signal_pose[-1].weight.copy_(torch.randn(m.signal_pose[-1].weight.shape, generator=g))
@@ -766,8 +788,8 @@ def test_signal_orientation_makes_the_pose_path_see_which_way_the_body_faces():
         prev_state = m.latent_mean + m.latent_scale * (m.global_basis @ z_prev).reshape(A, L)
         step = coef(base(pose[None], r[None], trans[None], prev_state[None])[0])
         torch.testing.assert_close(coef(out), step + p(r, N - 1), atol=1e-4, rtol=1e-4)
-    with pytest.raises(ValueError, match="signal_orientation is an input of the pose path"):
-        signal_model(signal_orientation=True)
+    with pytest.raises(ValueError, match="world_orientation with readout=.signals. is an input of its pose path"):
+        signal_model(world_orientation=True)
 
 
 def test_both_readouts_gate_the_transformers_answer_toward_the_signals_candidate():

@@ -198,12 +198,15 @@ class PredictorConfig:
     (shading baked into the projected textures, cloth that follows a joint) needs no memory; the state then holds
     only what the motion's history adds. The state fed back is ``z_{t-1} = y_{t-1} - p_{t-1}`` with frame t-1's
     pose from the window (with N_b = 1, frame t's). Measured in docs/train.md."""
-    signal_orientation: bool = False
-    """With ``signal_pose_path``: the instantaneous part also reads the root's world orientation (the first two
-    columns of its rotation matrix). A capture lit by lights fixed in the room bakes shading into its textures that
-    follows which way the body faces and leans, a function of the current root orientation that a pose-conditioned
-    avatar in canonical space cannot model and the latents take; every other signal of this readout is in the body's
-    heading frame and blind to it. Measured in docs/train.md."""
+    world_orientation: bool = False
+    """The predictor also reads the root's *world* orientation (the first two columns of its rotation matrix;
+    beyond the paper, whose root enters relative to the window's last frame). A capture lit by lights fixed in the
+    room bakes shading into its textures that follows which way the body faces and leans: a function of the root's
+    world orientation that a pose-conditioned avatar in canonical space cannot model and the latents take, and that
+    every other input (heading-frame joints, root motion relative to the last frame) is blind to. The transformer
+    gets six more pose slots (the orientation over the window, values, velocities and accelerations like every
+    slot); ``readout="signals"`` reads it in its pose path (needs ``signal_pose_path``). Measured in
+    docs/train.md."""
     signal_heads: int = 8
     """Softmax selections over the signal tokens (``readout="signals"``)."""
     signal_hidden: int = 32
@@ -575,7 +578,8 @@ class AppearancePredictor(_Streaming, nn.Module):
         self.config, self.num_anchors, self.pose_dim = c, int(num_anchors), int(pose_dim)
         A, L, D = self.num_anchors, c.latent_dim, c.width
         K = c.latent_pca_components if c.latent_pca == "anchor" else 0
-        S = int(slots.numel()) + ROOT_SLOTS
+        self.orientation_slots = c.world_orientation and c.readout != "signals"  # the transformer's input
+        S = int(slots.numel()) + ROOT_SLOTS + (ORIENTATION_FEATURES if self.orientation_slots else 0)
         if any(not (math.isfinite(float(t)) and float(t) > 0) for t in c.memory_timescales):
             raise ValueError(f"config.memory_timescales must be positive frame counts, got {c.memory_timescales}")
         if c.memory_timescales and c.joint_tokens:
@@ -598,8 +602,11 @@ class AppearancePredictor(_Streaming, nn.Module):
             raise ValueError(
                 "config.signal_pose_path is for readout='signals' (with 'both' the transformer has the pose)"
             )
-        if c.signal_orientation and not c.signal_pose_path:
-            raise ValueError("config.signal_orientation is an input of the pose path: it needs signal_pose_path")
+        if c.world_orientation and c.readout == "signals" and not c.signal_pose_path:
+            raise ValueError(
+                "config.world_orientation with readout='signals' is an input of its pose path: it needs "
+                "signal_pose_path"
+            )
         if c.readout == "signals" and (c.gate or not c.latent_tokens):
             raise ValueError(
                 "config.gate and latent_tokens shape the transformer, which readout='signals' does not build"
@@ -680,7 +687,7 @@ class AppearancePredictor(_Streaming, nn.Module):
             P_in = (
                 int(self.pose_pca_basis.shape[1]) if self.pose_pca_basis is not None else int(self.pose_slots.numel())
             )
-            P_in += ORIENTATION_FEATURES if c.signal_orientation else 0
+            P_in += ORIENTATION_FEATURES if c.world_orientation else 0
             self.signal_pose = nn.Sequential(nn.Linear(P_in, H), nn.ReLU(), nn.Linear(H, K))
             with torch.no_grad():
                 self.signal_pose[-1].weight.zero_()
@@ -721,12 +728,16 @@ class AppearancePredictor(_Streaming, nn.Module):
         return pca_project(pose, m, b, lim)
 
     def slot_values(self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor) -> Tensor:
-        """Per-slot values over the window: local pose slots, then the relative root motion.
+        """Per-slot values over the window: local pose slots, the relative root motion, then (``world_orientation``
+        with a transformer) the root's world orientation.
 
         [B, N, P], [B, N, 3], [B, N, 3] -> [B, N, S]
         """
-        pose = self.conditioning_pose(pose_window)[..., self.pose_slots]  # [B, N, S-6]
-        return torch.cat([pose, relative_root_motion(root_rot_window, root_trans_window)], -1)
+        pose = self.conditioning_pose(pose_window)[..., self.pose_slots]  # [B, N, S-6(-6)]
+        parts = [pose, relative_root_motion(root_rot_window, root_trans_window)]
+        if self.orientation_slots:
+            parts.append(orientation_features(root_rot_window))
+        return torch.cat(parts, -1)
 
     def features(self, pose_window: Tensor, root_rot_window: Tensor, root_trans_window: Tensor) -> Tensor:
         """Raw (unnormalised) token features. -> [B, S, 3N-3] (values only: [B, S, N])"""
@@ -931,7 +942,7 @@ class AppearancePredictor(_Streaming, nn.Module):
         if self.config.signal_pose_path:  # y = z + p: the state is what the current pose does not explain
             last = pose_window[:, -2:] if pose_window.shape[1] >= 2 else pose_window[:, -1:].expand(-1, 2, -1)
             f = self.initial_features(last.reshape(2 * B, -1))
-            if self.config.signal_orientation:
+            if self.config.world_orientation:
                 rot = (
                     root_rot_window[:, -2:] if pose_window.shape[1] >= 2 else root_rot_window[:, -1:].expand(-1, 2, -1)
                 )
