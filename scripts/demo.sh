@@ -28,8 +28,10 @@ train() {  # train NAME [avatar-train flags...]: one run, resumed if it exists
 # CPU recipe of the predictor (docs/train.md "The appearance predictor on history-caused appearance"): one global
 # latent PCA of 8 components as the output clamp; zero context = the training-mean latent (the default); an ensemble
 # of 2 predictors from 2 seeds of 400 steps each, averaged every step (the seed-to-seed spread of one predictor is
-# larger than its gain; two of 400 steps cost what four of 200 did and were closer to the encoder's latents)
-PRED_FLAGS="${PRED_FLAGS:---steps 400 --window 8 --model.latent-pca global --model.latent-pca-components 8 --ensemble 2}"
+# larger than its gain; two of 400 steps cost what four of 200 did and were closer to the encoder's latents); the
+# root's world orientation as six more pose slots (the synthetic captures' light is fixed in the room, and the
+# shading it bakes into the textures is the largest latent direction on `small`: docs/train.md "The room's light")
+PRED_FLAGS="${PRED_FLAGS:---steps 400 --window 8 --model.latent-pca global --model.latent-pca-components 8 --ensemble 2 --model.world-orientation}"
 seed_runs() {  # run-to-run spread of Ours: the same recipe with the seeds in $SEEDS (default 1 2)
     for s in ${SEEDS-1 2}; do
         train "run_ours_seed$s" --seed "$s"
