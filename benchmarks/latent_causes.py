@@ -92,21 +92,21 @@ def main() -> None:
         state_names = []
     rows = []
     for k in range(K):
-        r2 = {name: ridge_skill(X, coef[:, k], train, test) for name, X in inputs.items()}
+        skill = {name: ridge_skill(X, coef[:, k], train, test) for name, X in inputs.items()}
+        rms = float(np.sqrt(np.mean((coef[test, k] - coef[train, k].mean()) ** 2)))
+        std = float(coef[train, k].std())
         rows.append(
             {
                 "component": k + 1,
                 "variance_share": float(share[k]),
-                "test_skill": r2,
-                "test_rms_about_train_mean": float(np.sqrt(np.mean((coef[test, k] - coef[train, k].mean()) ** 2))),
-                "train_std": float(coef[train, k].std()),
+                "test_skill": skill,
+                "test_rms_about_train_mean": rms,
+                "train_std": std,
             }
         )
         print(
-            f"PC{k + 1} ({100 * share[k]:.1f}% of the training variance): "
-            + f"test rms about the training mean {np.sqrt(np.mean((coef[test, k] - coef[train, k].mean()) ** 2)):.1f} "
-            + f"(training std {coef[train, k].std():.1f}); skill "
-            + ", ".join(f"{n} {v:.2f}" for n, v in r2.items())
+            f"PC{k + 1} ({100 * share[k]:.1f}% of the training variance): test rms about the training mean "
+            f"{rms:.1f} (training std {std:.1f}); skill " + ", ".join(f"{n} {v:.2f}" for n, v in skill.items())
         )
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)

@@ -940,13 +940,13 @@ class AppearancePredictor(_Streaming, nn.Module):
         z = ((prev_latents - self.latent_mean) / self.latent_scale).flatten(1) @ basis  # [B, K]
         now = torch.zeros_like(z)
         if self.config.signal_pose_path:  # y = z + p: the state is what the current pose does not explain
-            last = pose_window[:, -2:] if pose_window.shape[1] >= 2 else pose_window[:, -1:].expand(-1, 2, -1)
-            f = self.initial_features(last.reshape(2 * B, -1))
+
+            def last_two(x: Tensor) -> Tensor:  # frames t-1 and t (with N_b = 1, frame t twice)  [B, N, D] -> [2B, D]
+                return (x[:, -2:] if x.shape[1] >= 2 else x[:, -1:].expand(-1, 2, -1)).reshape(2 * B, -1)
+
+            f = self.initial_features(last_two(pose_window))
             if self.config.world_orientation:
-                rot = (
-                    root_rot_window[:, -2:] if pose_window.shape[1] >= 2 else root_rot_window[:, -1:].expand(-1, 2, -1)
-                )
-                f = torch.cat([f, orientation_features(rot.reshape(2 * B, 3))], -1)
+                f = torch.cat([f, orientation_features(last_two(root_rot_window))], -1)
             p = self.signal_pose(f).reshape(B, 2, K)
             z, now = z - p[:, 0], p[:, 1]
         z = z + gate * (cand - z) + now
@@ -1021,8 +1021,8 @@ class PredictorEnsemble(_Streaming, nn.Module):
             if key != key0:
                 diff = {k: (key[k], key0[k]) for k in key if key[k] != key0[k]}
                 raise ValueError(f"members[{i}]: differs from members[0] in what an ensemble shares: {diff}")
-            for name, buf in m0.named_buffers():
-                if name in _FITTED_BUFFERS and not torch.equal(buf, dict(m.named_buffers())[name]):
+            for name in _FITTED_BUFFERS:
+                if not torch.equal(getattr(m0, name), getattr(m, name)):
                     raise ValueError(f"members[{i}]: its fitted {name} differs from members[0]'s (another run's?)")
         self.members = nn.ModuleList(members)
         self.config, self.num_anchors, self.pose_dim = m0.config, m0.num_anchors, m0.pose_dim
