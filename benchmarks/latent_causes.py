@@ -34,13 +34,10 @@ def ridge_skill(X: np.ndarray, y: np.ndarray, train: np.ndarray, test: np.ndarra
     ``1 - SSE / SSE of the training mean`` (1: exact; 0: no better than the training mean, the predictor's zero
     init; < 0: worse). Unlike R^2 about the test rows' own mean it credits predicting where the test segment sits,
     which is most of what a latent predictor gains over the training-mean latent."""
-    mu, sd = X[train].mean(0), X[train].std(0)
-    Xs = np.c_[(X - mu) / np.where(sd > 1e-12, sd, 1.0), np.ones(len(X))]
-    A = Xs[train]
-    reg = ridge * len(train) * np.eye(A.shape[1])
-    reg[-1, -1] = 0.0  # no shrinkage of the bias
-    w = np.linalg.solve(A.T @ A + reg, A.T @ y[train])
-    res = y[test] - Xs[test] @ w
+    from gsavatar.synth.fairness import ridge_fit, ridge_predict
+
+    model = ridge_fit(X[train], y[train, None], ridge * len(train))
+    res = y[test] - ridge_predict(model, X[test])[:, 0]
     tot = y[test] - y[train].mean()
     return float(1.0 - (res @ res) / max(float(tot @ tot), 1e-12))
 

@@ -24,33 +24,60 @@ import numpy as np
 import torch
 
 
-def true_state_latents(capture_root: Path, targets, frames: list[int], ridge: float = 1e-3) -> dict[str, torch.Tensor]:
-    """Latents of ``frames`` read from the true states by a ridge fit on the training frames' encoder latents.
+def ridge_latents(
+    X: np.ndarray, capture_root: Path, targets, frames: list[int], held: list[int | None], ridge: float = 1e-3
+) -> list[torch.Tensor]:
+    """Latents of ``frames`` read from per-frame features ``X`` [F, D] (every capture frame) by an affine ridge fit on
+    the training frames' encoder latents; the features are standardised on the training frames. For each entry of
+    ``held``: the read-out with that feature column held at its training mean (``None``: none held).
+    -> [T, A, L] each"""
+    from gsavatar.data_schema.capture import load_capture
+    from gsavatar.synth.fairness import ridge_fit, ridge_predict
 
-    The states are ``gt/motion_states.npz`` levels, standardised on the training frames; the read-out is affine
-    (a perfect predictor of the states, rendered through the best linear map to the latent space). One fit; the
-    read-outs: ``""`` of every state, and for each state name the same with that state held at its training mean (a
-    perfect predictor of every other state that never learnt this one). -> {"" or name: [T, A, L]}"""
-    z = np.load(capture_root / "gt" / "motion_states.npz")
-    levels, names = z["levels"].astype(np.float64), [str(n) for n in z["names"]]  # [F, E]
     lat = np.asarray(targets.latents, dtype=np.float64)  # [n, A, L]
     shape = lat.shape[1:]
-    from gsavatar.data_schema.capture import load_capture
-
     train = set(int(f) for f in load_capture(capture_root).splits["train"].frames)
     rows = [i for i, f in enumerate(targets.frames) if int(f) in train]
     ftr = np.asarray(targets.frames)[rows]
-    mu, sd = levels[ftr].mean(0), levels[ftr].std(0) + 1e-8
-    X = np.c_[(levels - mu) / sd, np.ones(len(levels))]
-    A, Y = X[ftr], lat[rows].reshape(len(rows), -1)
-    W = np.linalg.solve(A.T @ A + ridge * len(rows) * np.eye(A.shape[1]), A.T @ Y)
+    model = ridge_fit(X[ftr], lat[rows].reshape(len(rows), -1), ridge * len(rows))
+    mu = model[0]
     Xf = X[np.asarray(frames)]
-    out = {}
-    for held, name in [(None, "")] + list(enumerate(names)):
+    out = []
+    for h in held:
         Xh = Xf.copy()
-        if held is not None:
-            Xh[:, held] = 0.0  # the standardised training mean
-        out[name] = torch.as_tensor((Xh @ W).reshape(len(frames), *shape), dtype=torch.float32)
+        if h is not None:
+            Xh[:, h] = mu[h]  # the training mean
+        out.append(torch.as_tensor(ridge_predict(model, Xh).reshape(len(frames), *shape), dtype=torch.float32))
+    return out
+
+
+def oracle_latents(
+    capture_root: Path, targets, frames: list[int], root_rotation: np.ndarray
+) -> dict[str, torch.Tensor]:
+    """Upper bounds read from what a capture's appearance is a function of, by :func:`ridge_latents`:
+
+    - ``true states``: every ``gt/motion_states.npz`` level (a perfect predictor of the states, rendered through the
+      best linear map to the latent space), and for each state the same with that state held at its mean (a perfect
+      predictor of every other state that never learnt this one);
+    - ``orientation``: the root's world orientation alone (what an input with no memory at all can read of the
+      shading by lights fixed in the room, docs/train.md);
+    - ``orientation + true states``."""
+    from gsavatar.models.predictor import orientation_features
+
+    orient = orientation_features(torch.as_tensor(np.asarray(root_rotation, dtype=np.float64))).numpy()
+    out = {"oracle: orientation": ridge_latents(orient, capture_root, targets, frames, [None])[0]}
+    path = capture_root / "gt" / "motion_states.npz"
+    if not path.exists():
+        return out
+    z = np.load(path)
+    levels, names = z["levels"].astype(np.float64), [str(n) for n in z["names"]]  # [F, E]
+    lats = ridge_latents(levels, capture_root, targets, frames, [None] + list(range(len(names))))
+    out["oracle: true states"] = lats[0]
+    for n, lat in zip(names, lats[1:]):
+        out[f"oracle: true states, {n} at its mean"] = lat
+    out["oracle: orientation + true states"] = ridge_latents(
+        np.c_[orient, levels], capture_root, targets, frames, [None]
+    )[0]
     return out
 
 
@@ -67,8 +94,9 @@ def main() -> None:
         "--oracles",
         action="store_true",
         help="also render two upper bounds: the encoder's latents through the first predictor's output clamp, and "
-        "a ridge from the capture's true states (gt/motion_states.npz) to the encoder's latents fit on the "
-        "training frames (what a predictor that knew the states exactly could render)",
+        "ridges from the capture's true states (gt/motion_states.npz), from the root's world orientation and from "
+        "both to the encoder's latents, fit on the training frames (what a predictor that knew them exactly could "
+        "render)",
     )
     a = ap.parse_args()
     torch.set_num_threads(1)
@@ -114,10 +142,10 @@ def main() -> None:
             sources[f"{label} zero init"] = m.rollout(P, R, Tr, m.zero_latents())
             sources[f"{label} encoder init"] = m.rollout(P, R, Tr, enc[0], first_is_given=True)
     if a.oracles:
-        first = predictor_from_checkpoint(Path(a.predictors[0].partition("=")[2].split("+")[0]))
-        sources["oracle: encoder clamped"] = first.clamp_latents(enc)
-        for n, lat in true_state_latents(cap.root, targets, frames).items():
-            sources["oracle: true states" + (f", {n} at its mean" if n else "")] = lat
+        if a.predictors:
+            first = predictor_from_checkpoint(Path(a.predictors[0].partition("=")[2].split("+")[0]))
+            sources["oracle: encoder clamped"] = first.clamp_latents(enc)
+        sources.update(oracle_latents(cap.root, targets, frames, np.asarray(cap.motion.root_rotation)))
     picks = list(range(0, T, a.every))
     sse = {k: 0.0 for k in sources}
     npx = 0

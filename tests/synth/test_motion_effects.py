@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from gsavatar.synth.appearance import AppearanceConfig, AppearanceModel
-from gsavatar.synth.fairness import history_features, pooled_r2, predictability, stack_history
+from gsavatar.synth.fairness import (
+    history_features,
+    pooled_r2,
+    predictability,
+    ridge_fit,
+    ridge_predict,
+    stack_history,
+)
 from gsavatar.synth.motion_effects import (
     MotionEffect,
     accumulator_state,
@@ -156,6 +163,22 @@ def test_fairness_check_known_answers():
     r = predictability(feats, now[:, None], train, test)
     assert r["history"] > 0.9 and r["pose_only"] > 0.9
     assert pooled_r2(np.zeros((5, 1)), np.arange(5.0)[:, None]) == pytest.approx(1 - 30 / 10)
+
+
+def test_ridge_recovers_an_affine_map_and_its_bias_is_not_shrunk():
+    """Naive oracle: the least-squares solution of the affine map with the bias as a column; a constant feature
+    column is harmless; a large penalty shrinks the weights toward the mean of Y, never the mean itself."""
+    rng = np.random.default_rng(0)
+    X = np.c_[rng.normal(size=(200, 3)) * [1.0, 10.0, 0.1], np.full(200, 5.0)]
+    W = rng.normal(size=(4, 2))
+    Y = X @ W + [3.0, -7.0]
+    model = ridge_fit(X, Y, alpha=1e-9)
+    Xq = np.c_[rng.normal(size=(20, 3)), np.full(20, 5.0)]
+    A = np.c_[X, np.ones(len(X))]
+    coef = np.linalg.lstsq(A, Y, rcond=None)[0]
+    np.testing.assert_allclose(ridge_predict(model, Xq), np.c_[Xq, np.ones(20)] @ coef, atol=1e-6)
+    heavy = ridge_predict(ridge_fit(X, Y, alpha=1e9), Xq)
+    np.testing.assert_allclose(heavy, np.broadcast_to(Y.mean(0), heavy.shape), atol=1e-4)
 
 
 def test_fairness_history_sees_the_motion_of_a_smooth_pose():

@@ -67,7 +67,10 @@ def history_features(x: np.ndarray, history: int) -> np.ndarray:
     return np.concatenate([s[:, -1], d.reshape(len(x), -1)], 1)
 
 
-def _ridge_fit(X: np.ndarray, Y: np.ndarray, alpha: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def ridge_fit(X: np.ndarray, Y: np.ndarray, alpha: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Ridge regression of ``Y`` on ``X`` standardised per column, with an unpenalised bias (``X`` and ``Y`` are
+    centred; constant columns get unit scale). ``alpha`` is the absolute penalty on the standardised weights.
+    [n, D], [n, E] -> the model for :func:`ridge_predict`"""
     mu, sd = X.mean(0), X.std(0)
     sd = np.where(sd > 1e-9, sd, 1.0)
     Z = (X - mu) / sd
@@ -76,7 +79,8 @@ def _ridge_fit(X: np.ndarray, Y: np.ndarray, alpha: float) -> tuple[np.ndarray, 
     return mu, sd, W, ym
 
 
-def _ridge_predict(model, X: np.ndarray) -> np.ndarray:
+def ridge_predict(model, X: np.ndarray) -> np.ndarray:
+    """Predictions of a :func:`ridge_fit` model. [m, D] -> [m, E]"""
     mu, sd, W, ym = model
     return ((X - mu) / sd) @ W + ym
 
@@ -101,8 +105,8 @@ def ridge_cv(X: np.ndarray, Y: np.ndarray, folds: int = 5, alphas: tuple[float, 
             va[edges[k] : edges[k + 1]] = True
             if va.all() or not va.any():
                 continue
-            m = _ridge_fit(X[~va], Y[~va], a)
-            err += float(((_ridge_predict(m, X[va]) - Y[va]) ** 2).sum())
+            m = ridge_fit(X[~va], Y[~va], a)
+            err += float(((ridge_predict(m, X[va]) - Y[va]) ** 2).sum())
         if err < best_err:
             best, best_err = a, err
     return best
@@ -165,9 +169,9 @@ def ridge_r2(
     chosen = []
     for e in range(y.shape[1]):
         chosen.append(ridge_cv(X[train], y[train][:, [e]], alphas=alphas))
-        fit = _ridge_fit(X[train], y[train][:, [e]], chosen[-1])
+        fit = ridge_fit(X[train], y[train][:, [e]], chosen[-1])
         # Clipped to the training range: a state never leaves it, and novel test poses must not extrapolate.
-        pred[:, e] = np.clip(_ridge_predict(fit, X[test])[:, 0], y[train][:, e].min(), y[train][:, e].max())
+        pred[:, e] = np.clip(ridge_predict(fit, X[test])[:, 0], y[train][:, e].min(), y[train][:, e].max())
     per_state = [pooled_r2(pred[:, [e]], y[test][:, [e]]) for e in range(y.shape[1])]
     return pooled_r2(pred, y[test]), per_state, chosen
 
