@@ -107,7 +107,8 @@ class PredictorTrainConfig:
     signal_warmup_steps: int = 0
     """With ``model.readout = "both"``: the first this many steps train the signal readout alone (the transformer is
     skipped, the signals update the previous latents as ``readout = "signals"`` does), then both train together
-    (``steps`` counts both phases). Jointly from the start, the transformer fits the training sequence (it can tell
+    (``steps`` counts both phases; ``feature_noise`` perturbs the transformer's tokens, so it acts only after).
+    Jointly from the start, the transformer fits the training sequence (it can tell
     every training window apart) before the selections have found the joints that drive the appearance, and the
     signals' gradient fades; a warm-up lets the selections settle first. 0 = joint from the start. Measured in
     docs/train.md."""
