@@ -52,7 +52,7 @@ def ridge_latents(
 
 
 def oracle_latents(
-    capture_root: Path, targets, frames: list[int], root_rotation: np.ndarray
+    capture_root: Path, targets, frames: list[int], root_rotation: np.ndarray, pose: np.ndarray
 ) -> dict[str, torch.Tensor]:
     """Upper bounds read from what a capture's appearance is a function of, by :func:`ridge_latents`:
 
@@ -61,11 +61,18 @@ def oracle_latents(
       predictor of every other state that never learnt this one);
     - ``orientation``: the root's world orientation alone (what an input with no memory at all can read of the
       shading by lights fixed in the room, docs/train.md);
+    - ``current pose + orientation``: everything a frame shows, with no memory (the linear no-history bound);
     - ``orientation + true states``."""
     from gsavatar.models.predictor import orientation_features
 
     orient = orientation_features(torch.as_tensor(np.asarray(root_rotation, dtype=np.float64))).numpy()
-    out = {"oracle: orientation": ridge_latents(orient, capture_root, targets, frames, [None])[0]}
+    pose = np.asarray(pose, dtype=np.float64)
+    out = {
+        "oracle: orientation": ridge_latents(orient, capture_root, targets, frames, [None])[0],
+        "oracle: current pose + orientation": ridge_latents(np.c_[pose, orient], capture_root, targets, frames, [None])[
+            0
+        ],
+    }
     path = capture_root / "gt" / "motion_states.npz"
     if not path.exists():
         return out
@@ -141,11 +148,15 @@ def main() -> None:
         with torch.no_grad():
             sources[f"{label} zero init"] = m.rollout(P, R, Tr, m.zero_latents())
             sources[f"{label} encoder init"] = m.rollout(P, R, Tr, enc[0], first_is_given=True)
+            if m.initial is not None and bool(m.initial_ready):
+                sources[f"{label} pose only"] = m.initial_latents(P)  # drive mode pose_regression: no memory
     if a.oracles:
         if a.predictors:
             first = predictor_from_checkpoint(Path(a.predictors[0].partition("=")[2].split("+")[0]))
             sources["oracle: encoder clamped"] = first.clamp_latents(enc)
-        sources.update(oracle_latents(cap.root, targets, frames, np.asarray(cap.motion.root_rotation)))
+        sources.update(
+            oracle_latents(cap.root, targets, frames, np.asarray(cap.motion.root_rotation), np.asarray(cap.motion.pose))
+        )
     picks = list(range(0, T, a.every))
     sse = {k: 0.0 for k in sources}
     npx = 0
