@@ -336,6 +336,42 @@ def grid_picture(runs: Path, drive_tags: dict[str, str], out: Path) -> dict:
     return {"figure": str(out), "capture_frame": int(frame), "test_index": t, "camera": cam, "psnr_fg": scores}
 
 
+MIN_ENCODER_GAIN_DB = 0.1
+"""Below this gain of the encoder's latents over the training-mean latent (test frames, in the mask) the predictor's
+recovery is recorded as undefined (null, with the reason) instead of a ratio of two small noisy differences."""
+
+
+def recovery_fields(
+    mean: float | None,
+    encoder: float | None,
+    zero_init: float | None,
+    no_history: float | None = None,
+    pose_only: float | None = None,
+) -> dict:
+    """results.json's predictor-recovery fields from PSNRs inside the mask (test frames, held-out cameras):
+    ``predictor_recovery`` = the zero-init predictor's gain over the training-mean latent / the encoder's (and the same
+    for the no-history and pose-only rows when given). With an encoder gain below :data:`MIN_ENCODER_GAIN_DB`
+    (a capture whose latents buy nothing on its test frames) the recovery is ``None`` and
+    ``predictor_recovery_undefined`` says why; {} when a row is missing."""
+    if None in (mean, encoder, zero_init):
+        return {}
+    gain = encoder - mean
+    if gain < MIN_ENCODER_GAIN_DB:  # the ratio would be noise over noise, or of the wrong sign
+        return {
+            "predictor_recovery": None,
+            "predictor_recovery_undefined": (
+                f"the encoder's gain over the training-mean latent is {gain:+.2f} dB (< {MIN_ENCODER_GAIN_DB} dB): "
+                f"no gain to divide by; the zero-init predictor's own gain is {zero_init - mean:+.2f} dB"
+            ),
+            "mean_latent_psnr_fg": mean,
+        }
+    out = {"predictor_recovery": (zero_init - mean) / gain, "mean_latent_psnr_fg": mean}
+    for key, psnr in (("no_history", no_history), ("pose_only", pose_only)):
+        if psnr is not None:
+            out[f"predictor_recovery_{key}"] = (psnr - mean) / gain
+    return out
+
+
 def capture_tables(
     label: str, runs: Path, image_scale: float, params: list[str], grid: Path | None = None, md_dir: Path = Path(".")
 ) -> tuple[list[str], dict]:
@@ -483,18 +519,14 @@ def capture_tables(
         record["latent_gain_vs_oracle"] = ours["latent_gain_db"] / oracle["latent_gain_db"]
     by_label = {lab: m for lab, _, _, m in rows}
     mean = by_label.get("Ours (training-mean latent)", {}).get("psnr_fg")  # same frames and cameras as the rows
-    enc, zero = (by_label.get(f"Ours ({k})", {}).get("psnr_fg") for k in ("encoder", "predictor, zero init"))
-    if None not in (mean, enc, zero) and enc - mean >= 0.1:  # below it the ratio is noise over noise
-        # the zero-init predictor's gain over the training-mean latent / the encoder's (test frames, held-out
-        # cameras, inside the mask)
-        record["predictor_recovery"] = (zero - mean) / (enc - mean)
-        record["mean_latent_psnr_fg"] = mean
-        nohist = by_label.get("Ours, no history: N_b = 1, no velocities (zero init)", {}).get("psnr_fg")
-        if nohist is not None:
-            record["predictor_recovery_no_history"] = (nohist - mean) / (enc - mean)
-        pose_only = by_label.get("Ours, pose only: no window, no fed-back latents", {}).get("psnr_fg")
-        if pose_only is not None:
-            record["predictor_recovery_pose_only"] = (pose_only - mean) / (enc - mean)
+    record.update(
+        recovery_fields(
+            mean,
+            *(by_label.get(f"Ours ({k})", {}).get("psnr_fg") for k in ("encoder", "predictor, zero init")),
+            no_history=by_label.get("Ours, no history: N_b = 1, no velocities (zero init)", {}).get("psnr_fg"),
+            pose_only=by_label.get("Ours, pose only: no window, no fed-back latents", {}).get("psnr_fg"),
+        )
+    )
     capture = _capture_of(runs / "run_ours") if (runs / "run_ours" / "config.json").exists() else None
     fair = capture / "gt" / "fairness.json" if capture is not None else None
     if fair is not None and fair.exists():
@@ -534,7 +566,7 @@ def _summary_lines(record: dict, mean: float | None) -> list[str]:
             "",
             f"Training-mean latent on the same frames and cameras (drive mode `train_mean`): PSNR (mask) {mean:.2f}.",
         ]
-    if "predictor_recovery" in record:
+    if record.get("predictor_recovery") is not None:
         out.append(
             f"Predictor recovery (zero init, no texture: its gain over the training-mean latent / the encoder's): "
             f"{record['predictor_recovery']:.0%}"
@@ -550,6 +582,8 @@ def _summary_lines(record: dict, mean: float | None) -> list[str]:
             )
             + "."
         )
+    if "predictor_recovery_undefined" in record:
+        out.append(f"Predictor recovery: undefined, {record['predictor_recovery_undefined']}.")
     if "history_fairness" in record:
         f = record["history_fairness"]
         out.append(
