@@ -352,12 +352,17 @@ def recovery_fields(
     ``predictor_recovery`` = the zero-init predictor's gain over the training-mean latent / the encoder's (and the same
     for the no-history and pose-only rows when given). With an encoder gain below :data:`MIN_ENCODER_GAIN_DB`
     (a capture whose latents buy nothing on its test frames) the recovery is ``None`` and
-    ``predictor_recovery_undefined`` says why; {} when a row is missing."""
-    if None in (mean, encoder, zero_init):
-        return {}
+    ``predictor_recovery_undefined`` says why (also when one of the three rows is missing)."""
+    missing = [
+        name
+        for name, v in (("training-mean latent", mean), ("encoder", encoder), ("zero init", zero_init))
+        if v is None
+    ]
+    if missing:
+        return {"predictor_recovery": None, "predictor_recovery_undefined": f"no driven row of: {', '.join(missing)}"}
     gain = encoder - mean
     if gain < MIN_ENCODER_GAIN_DB:  # the ratio would be noise over noise, or of the wrong sign
-        return {
+        out = {
             "predictor_recovery": None,
             "predictor_recovery_undefined": (
                 f"the encoder's gain over the training-mean latent is {gain:+.2f} dB (< {MIN_ENCODER_GAIN_DB} dB): "
@@ -365,6 +370,10 @@ def recovery_fields(
             ),
             "mean_latent_psnr_fg": mean,
         }
+        for key, psnr in (("no_history", no_history), ("pose_only", pose_only)):
+            if psnr is not None:
+                out[f"predictor_recovery_{key}"] = None
+        return out
     out = {"predictor_recovery": (zero_init - mean) / gain, "mean_latent_psnr_fg": mean}
     for key, psnr in (("no_history", no_history), ("pose_only", pose_only)):
         if psnr is not None:

@@ -35,9 +35,13 @@ def test_recovery_is_null_with_its_reason_when_the_encoder_gains_nothing(results
     assert r["predictor_recovery"] is None
     assert "no gain to divide by" in r["predictor_recovery_undefined"]
     assert "+0.40 dB" in r["predictor_recovery_undefined"]
-    assert "predictor_recovery_no_history" not in r
+    assert r["predictor_recovery_no_history"] is None  # its row exists: undefined, not missing
+    assert "predictor_recovery_pose_only" not in r  # no such row
+    assert r["mean_latent_psnr_fg"] == 20.0
 
 
-def test_recovery_needs_its_three_rows(results_table):
-    assert results_table.recovery_fields(None, 22.0, 21.0) == {}
-    assert results_table.recovery_fields(20.0, 22.0, None) == {}
+def test_recovery_is_null_naming_a_missing_row(results_table):
+    r = results_table.recovery_fields(None, 22.0, 21.0)
+    assert r["predictor_recovery"] is None and "training-mean latent" in r["predictor_recovery_undefined"]
+    r = results_table.recovery_fields(20.0, 22.0, None)
+    assert r["predictor_recovery"] is None and "zero init" in r["predictor_recovery_undefined"]

@@ -177,6 +177,11 @@ def test_ridge_recovers_an_affine_map_and_its_bias_is_not_shrunk():
     A = np.c_[X, np.ones(len(X))]
     coef = np.linalg.lstsq(A, Y, rcond=None)[0]
     np.testing.assert_allclose(ridge_predict(model, Xq), np.c_[Xq, np.ones(20)] @ coef, atol=1e-6)
+    # a moderate penalty acts on the weights of the standardised columns: the closed form on those columns
+    Z = (X[:, :3] - X[:, :3].mean(0)) / X[:, :3].std(0)
+    Wz = np.linalg.solve(Z.T @ Z + 50.0 * np.eye(3), Z.T @ (Y - Y.mean(0)))
+    Zq = (Xq[:, :3] - X[:, :3].mean(0)) / X[:, :3].std(0)
+    np.testing.assert_allclose(ridge_predict(ridge_fit(X, Y, alpha=50.0), Xq), Zq @ Wz + Y.mean(0), atol=1e-9)
     heavy = ridge_predict(ridge_fit(X, Y, alpha=1e9), Xq)
     np.testing.assert_allclose(heavy, np.broadcast_to(Y.mean(0), heavy.shape), atol=1e-4)
 
