@@ -1,0 +1,45 @@
+"""benchmarks/trigger_capture.py: the controlled capture changes exactly the sleeve's signal and the light."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+from gsavatar.synth.presets import PRESETS
+
+
+@pytest.fixture(scope="module")
+def trigger_capture():
+    path = Path(__file__).parents[2] / "benchmarks" / "trigger_capture.py"
+    spec = importlib.util.spec_from_file_location("trigger_capture", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.parametrize("signal", ["speed", "vertical_velocity", "height"])
+def test_only_the_sleeve_signal_and_the_light_change(trigger_capture, signal):
+    base = PRESETS["small"]
+    cfg = trigger_capture.trigger_config(signal)
+    assert base.shading and not cfg.shading
+    old = {e.name: e for e in base.appearance.motion_effects}
+    new = {e.name: e for e in cfg.appearance.motion_effects}
+    assert list(old) == list(new)
+    assert new["sleeve"] == dataclasses.replace(old["sleeve"], signal=signal)
+    assert all(new[k] == old[k] for k in old if k != "sleeve")
+    # every other field of the preset is untouched
+    strip = {"shading", "appearance"}
+    assert {k: v for k, v in dataclasses.asdict(cfg).items() if k not in strip} == {
+        k: v for k, v in dataclasses.asdict(base).items() if k not in strip
+    }
+    assert dataclasses.replace(cfg.appearance, motion_effects=()) == dataclasses.replace(
+        base.appearance, motion_effects=()
+    )
+
+
+def test_an_unknown_signal_is_refused_before_rendering(trigger_capture):
+    with pytest.raises(ValueError, match="sleeve.*unknown signal 'bogus'"):
+        trigger_capture.trigger_config("bogus")
