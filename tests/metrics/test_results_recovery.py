@@ -3,19 +3,13 @@ encoder latents buy nothing on its test frames."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
+from benchmark_modules import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def results_table():
-    path = Path(__file__).parents[2] / "benchmarks" / "results_table.py"
-    spec = importlib.util.spec_from_file_location("results_table", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("results_table")
 
 
 def test_recovery_is_the_ratio_of_gains_over_the_mean_latent(results_table):

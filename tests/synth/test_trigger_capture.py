@@ -3,21 +3,16 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
-from pathlib import Path
 
 import pytest
+from benchmark_modules import load_benchmark
 
 from gsavatar.synth.presets import PRESETS
 
 
 @pytest.fixture(scope="module")
 def trigger_capture():
-    path = Path(__file__).parents[2] / "benchmarks" / "trigger_capture.py"
-    spec = importlib.util.spec_from_file_location("trigger_capture", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("trigger_capture")
 
 
 @pytest.mark.parametrize("signal", ["speed", "vertical_velocity", "height"])
