@@ -27,6 +27,14 @@ OutputKind = Literal["capture", "dataset", "run", "predictor", "drive", "report"
 MARKER = "gsavatar-output.json"
 MARKER_FORMAT = "gsavatar-output"
 _DRIVE_FRAME = re.compile(r"\d{6}\.png")
+_MARKER_TEMP = re.compile(re.escape(f".{MARKER}.") + r".+" + re.escape(Path(MARKER).suffix))
+"""Temp file of a marker being written (:func:`gsavatar.utils.io.atomic_path`'s name): another process
+(a torchrun rank claiming the same folder) is mid-write, or one was killed between creating and renaming it."""
+
+
+def _entries(d: Path) -> list[Path]:
+    """What a folder holds, less marker temp files (they do not make a folder foreign)."""
+    return [p for p in d.iterdir() if not _MARKER_TEMP.fullmatch(p.name)]
 
 
 def _json_dict(path: Path) -> dict | None:
@@ -123,7 +131,7 @@ def claim_output_dir(
     d = Path(path)
     if kind not in LEGACY:
         raise ValueError(f"kind must be one of {sorted(LEGACY)}, got {kind!r}")
-    if d.is_dir() and any(d.iterdir()):
+    if d.is_dir() and _entries(d):
         found = output_kind(d)
         if found is not None and found != kind:
             raise SchemaError(
