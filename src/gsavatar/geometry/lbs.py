@@ -138,64 +138,94 @@ class RigTensors:
             slot += p.size
         self.order = order
         self.euler_slots = torch.as_tensor(eul_slots, dtype=torch.long, device=device)
-        self.euler_axes = torch.as_tensor(np.array(axes, dtype=np.float32).reshape(-1, 3), dtype=dtype, device=device)
+        self.euler_axes = torch.as_tensor(np.array(axes, dtype=np.float64).reshape(-1, 3), dtype=dtype, device=device)
+        # Batched composition (pose_to_local_rotations): the factors are computed euler first, then axis-angle;
+        # round r multiplies the r-th factor (listed order) of every joint that has one into that joint.
+        aa_slots = np.array(aa_starts, np.int64).reshape(-1, 1) + np.arange(3)
+        self.aa_slots = torch.as_tensor(aa_slots, dtype=torch.long, device=device)  # [n_aa, 3]
+        factor_of, per_joint, e, a = [], [[] for _ in range(self.num_joints)], 0, len(eul_slots)
+        for j, kind, _ in order:
+            factor_of.append(e if kind == "euler" else a)
+            e, a = (e + 1, a) if kind == "euler" else (e, a + 1)
+            per_joint[j].append(factor_of[-1])
+        rounds = max((len(f) for f in per_joint), default=0)
+        self.rounds = [
+            (
+                torch.as_tensor([j for j, f in enumerate(per_joint) if len(f) > r], dtype=torch.long, device=device),
+                torch.as_tensor([f[r] for f in per_joint if len(f) > r], dtype=torch.long, device=device),
+            )
+            for r in range(rounds)
+        ]  # [(joints [n_r], factors [n_r])]
+        # forward kinematics by depth: every joint of one depth at once, from its parent one depth up
+        self.levels = [(j.to(device), p.to(device)) for j, p in _depth_levels(self.parents)]
 
 
 def pose_to_local_rotations(pose: Tensor, rig: Rig | RigTensors) -> Tensor:
     """Joint-local rotations from the pose vector.
 
     pose: [B, P] radians (rig order) -> [B, J, 3, 3]; joints without parameters get identity.
+    Every factor (euler and axis-angle) in two batched Rodrigues calls, then one batched product per factor rank
+    (a joint's factors multiply in listed order; the per-parameter loop is the reference in tests/geometry/).
     """
     rt = rig if isinstance(rig, RigTensors) else RigTensors(rig, pose.device, pose.dtype)
     if pose.ndim != 2 or pose.shape[1] != rt.pose_dim:
         raise ValueError(f"pose must be [B, {rt.pose_dim}], got {tuple(pose.shape)}")
     B = pose.shape[0]
-    # All euler factors at once, then a short loop over parameters in listed order to
-    # multiply them into their joint (P is ~100; the heavy work is batched over B).
-    eul = (
-        axis_angle_to_matrix(rt.euler_axes.to(pose.dtype)[None] * pose[:, rt.euler_slots, None])
-        if len(rt.euler_slots)
-        else None
-    )
-    local = [None] * rt.num_joints
-    k = 0
-    for j, kind, slot in rt.order:
-        if kind == "euler":
-            R = eul[:, k]
-            k += 1
-        else:
-            R = axis_angle_to_matrix(pose[:, slot : slot + 3])
-        local[j] = R if local[j] is None else local[j] @ R
-    eye = torch.eye(3, dtype=pose.dtype, device=pose.device).expand(B, 3, 3)
-    return torch.stack([eye if r is None else r for r in local], dim=1)
+    dev = pose.device
+    factors = []
+    if len(rt.euler_slots):
+        factors.append(axis_angle_to_matrix(rt.euler_axes.to(pose)[None] * pose[:, rt.euler_slots.to(dev), None]))
+    if len(rt.aa_slots):
+        factors.append(axis_angle_to_matrix(pose[:, rt.aa_slots.to(dev)]))  # [B, n_aa, 3, 3]
+    local = torch.eye(3, dtype=pose.dtype, device=dev).expand(B, rt.num_joints, 3, 3)
+    if not factors:
+        return local.clone()
+    R = torch.cat(factors, 1)  # [B, n_factors, 3, 3]: euler, then axis-angle
+    for r, (joints, idx) in enumerate(rt.rounds):
+        joints, idx = joints.to(dev), idx.to(dev)
+        value = R[:, idx] if r == 0 else local[:, joints] @ R[:, idx]
+        local = local.index_copy(1, joints, value)
+    return local
 
 
-def forward_kinematics(local_rot: Tensor, heads: Tensor, parents: list[int] | np.ndarray) -> Tensor:
+def forward_kinematics(local_rot: Tensor, heads: Tensor, parents: list[int] | np.ndarray, levels=None) -> Tensor:
     """Per-joint skinning transforms ``posed_from_rest`` (root fixed at its rest head).
 
-    local_rot: [B, J, 3, 3]; heads: [J, 3] rest joint positions; parents: len J (-1 root)
+    local_rot: [B, J, 3, 3]; heads: [J, 3] rest joint positions; parents: len J (-1 root);
+    ``levels``: :attr:`RigTensors.levels` (built from ``parents`` when None): the joints of one depth are posed at
+    once from their parents' (the per-joint loop is the reference in tests/geometry/)
     -> [B, J, 4, 4]
     """
     B, J = local_rot.shape[:2]
-    parents = list(map(int, parents))
-    rots: list[Tensor] = [None] * J  # global rotation of each joint
-    pos: list[Tensor] = [None] * J  # posed head position
-    for j in range(J):
-        p = parents[j]
-        if p < 0:
-            rots[j] = local_rot[:, j]
-            pos[j] = heads[j].expand(B, 3)
-        else:
-            rots[j] = rots[p] @ local_rot[:, j]
-            pos[j] = pos[p] + (rots[p] @ (heads[j] - heads[p]))
-    R = torch.stack(rots, 1)  # [B, J, 3, 3]
-    P = torch.stack(pos, 1)  # [B, J, 3]
-    t = P - (R @ heads[None, :, :, None])[..., 0]  # posed = R x + t maps rest head -> posed head
-    T = torch.zeros(B, J, 4, 4, dtype=local_rot.dtype, device=local_rot.device)
-    T[..., :3, :3] = R
+    dev = local_rot.device
+    if levels is None:
+        levels = _depth_levels(parents)
+    offsets = heads - heads[torch.as_tensor([max(int(p), 0) for p in parents], dtype=torch.long, device=dev)]
+    rots = local_rot  # joints of depth 0 keep their local rotation
+    pos = heads.expand(B, J, 3)  # and their rest head
+    for joints, par in levels[1:]:
+        joints, par = joints.to(dev), par.to(dev)
+        Rp = rots[:, par]  # [B, n, 3, 3]
+        rots = rots.index_copy(1, joints, Rp @ local_rot[:, joints])
+        pos = pos.index_copy(1, joints, pos[:, par] + (Rp @ offsets[joints, :, None])[..., 0])
+    t = pos - (rots @ heads[None, :, :, None])[..., 0]  # posed = R x + t maps rest head -> posed head
+    T = torch.zeros(B, J, 4, 4, dtype=local_rot.dtype, device=dev)
+    T[..., :3, :3] = rots
     T[..., :3, 3] = t
     T[..., 3, 3] = 1.0
     return T
+
+
+def _depth_levels(parents) -> list[tuple[Tensor, Tensor]]:
+    """``[(joints of depth d, their parents)]`` for d = 0, 1, ... (parents listed before their children)."""
+    parents = np.asarray(list(map(int, parents)), np.int64)
+    depth = np.zeros(len(parents), np.int64)
+    for j, p in enumerate(parents):
+        if p >= j:
+            raise ValueError("forward_kinematics: parents must come before their children (-1 for a root)")
+        depth[j] = 0 if p < 0 else depth[p] + 1
+    top = int(depth.max()) + 1 if len(parents) else 0
+    return [(torch.as_tensor(np.flatnonzero(depth == d)), torch.as_tensor(parents[depth == d])) for d in range(top)]
 
 
 def root_transform(root_rotation: Tensor, root_translation: Tensor, root_head: Tensor) -> Tensor:
@@ -213,7 +243,7 @@ def skinning_transforms(rig: Rig | RigTensors, pose: Tensor, root_rotation: Tens
     """World ``posed_from_rest`` per joint incl. root motion. [B,P],[B,3],[B,3] -> [B, J, 4, 4]."""
     rt = rig if isinstance(rig, RigTensors) else RigTensors(rig, pose.device, pose.dtype)
     heads = rt.heads.to(pose.dtype)
-    T = forward_kinematics(pose_to_local_rotations(pose, rt), heads, rt.parents)
+    T = forward_kinematics(pose_to_local_rotations(pose, rt), heads, rt.parents, rt.levels)
     root = root_transform(root_rotation, root_translation, heads[0])
     return root[:, None] @ T
 
