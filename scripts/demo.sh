@@ -15,6 +15,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 export ANNY_CACHE_DIR=${ANNY_CACHE_DIR:-$PWD/.cache/anny}
+export NUMBA_CACHE_DIR=${NUMBA_CACHE_DIR:-$PWD/.cache/numba}  # compiled kernels, reused by every process (utils/compiled.py)
 export VTK_DEFAULT_OPENGL_WINDOW=${VTK_DEFAULT_OPENGL_WINDOW:-vtkEGLRenderWindow}
 PRESET=${PRESET:-small}
 OUT=${OUT:-$PWD/out/demo}

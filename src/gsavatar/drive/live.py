@@ -32,6 +32,7 @@ from gsavatar.drive.sources import LATENT_SOURCES
 from gsavatar.models.ply import export_frame_ply
 from gsavatar.render.sh import SH_C0, eval_sh_colors
 from gsavatar.runs.latents import mean_train_latent
+from gsavatar.utils.compiled import CACHE
 from gsavatar.utils.outdir import claim_output_dir
 from gsavatar.utils.progress import progress_bar
 
@@ -100,7 +101,7 @@ def sh_to_rgb(sh: Tensor, means: Tensor, eye: Tensor | np.ndarray | None, degree
     return eval_sh_colors(degree, means - e, sh).clamp_(0.0, 1.0)
 
 
-@numba.njit(cache=False, nogil=True, fastmath=True)
+@numba.njit(cache=CACHE, nogil=True, fastmath=True)
 def _viewer_kernel(means, quats, scales, sh, eye, degree, cov, rgb):  # pragma: no cover - numba
     """Fused :func:`covariances_from` + :func:`sh_to_rgb` (degree 0..3; ``degree < 0``: band 0 only)."""
     n = means.shape[0]

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from gsavatar.utils.compiled import numba, set_threads
+from gsavatar.utils.compiled import CACHE, numba, set_threads
 
 if TYPE_CHECKING:  # annotations only: properties -> gaussians -> kernels
     from gsavatar.models.properties import PackedLayout
@@ -84,7 +84,7 @@ def reset_paths() -> None:
 if numba is not None:
     # Accumulation in the inputs' dtype (``x * 0`` keeps it) lets LLVM vectorise the inner loops; the
     # sums have K or B terms, like einsum's.
-    @numba.njit(parallel=True, cache=False, fastmath=True)
+    @numba.njit(parallel=True, cache=CACHE, fastmath=True)
     def _forward(coeffs, basis, out):  # [B, N, K], [N, K, D] -> out [B, N, D]
         B, N, K = coeffs.shape
         D = basis.shape[2]
@@ -97,7 +97,7 @@ if numba is not None:
                     for d in range(D):
                         out[b, n, d] += ck * basis[n, k, d]
 
-    @numba.njit(parallel=True, cache=False, fastmath=True)
+    @numba.njit(parallel=True, cache=CACHE, fastmath=True)
     def _backward(coeffs, basis, grad, g_coeffs, g_basis, need_coeffs, need_basis):
         B, N, K = coeffs.shape
         D = basis.shape[2]
@@ -117,7 +117,7 @@ if numba is not None:
                         for d in range(D):
                             g_basis[n, k, d] += cb * grad[b, n, d]
 
-    @numba.njit(cache=False, inline="always")
+    @numba.njit(cache=CACHE, inline="always")
     def _newton_polar(x, cof, tol, max_iters):
         # x [9] row-major 3x3 with det > 0, replaced by its orthogonal polar factor. Scaled Newton
         # X <- (g X + (g X)^-T) / 2, g = |det X|^(-1/3) (Higham 1986), float64. For 0.5 < |det| < 2 (LBS
@@ -152,7 +152,7 @@ if numba is not None:
             if delta <= tol:
                 break
 
-    @numba.njit(cache=False, inline="always")
+    @numba.njit(cache=CACHE, inline="always")
     def _store_polar(x, M, n, R, S):
         # R[n] = x (the polar factor), S[n] = R^T M[n] (its symmetric partner, kept for the backward)
         for i in range(9):
@@ -161,7 +161,7 @@ if numba is not None:
             for j in range(3):
                 S[n, 3 * i + j] = x[i] * M[n, j] + x[3 + i] * M[n, 3 + j] + x[6 + i] * M[n, 6 + j]
 
-    @numba.njit(parallel=True, cache=False)
+    @numba.njit(parallel=True, cache=CACHE)
     def _polar_forward(M, R, S, tol, max_iters):
         # M [N, 9] row-major blends with det > 0 -> R [N, 9] orthogonal polar factor, S [N, 9] = R^T M.
         for n in numba.prange(M.shape[0]):
@@ -172,7 +172,7 @@ if numba is not None:
             _newton_polar(x, cof, tol, max_iters)
             _store_polar(x, M, n, R, S)
 
-    @numba.njit(cache=False, inline="always")
+    @numba.njit(cache=CACHE, inline="always")
     def _polar_vjp(R, S, n, u0, u1, u2, out):
         # Given dL/dω = u for dR = R [ω]x, writes dL/dM = R [y]x, y = (tr(P) I - P)^-1 u, P = sym(S) (see
         # polar_rotation_fast), into out[n].
@@ -211,7 +211,7 @@ if numba is not None:
             out[n, 3 * i + 1] = -r0 * y2 + r2 * y0
             out[n, 3 * i + 2] = r0 * y1 - r1 * y0
 
-    @numba.njit(parallel=True, cache=False)
+    @numba.njit(parallel=True, cache=CACHE)
     def _polar_backward(R, S, G, out):
         for n in numba.prange(R.shape[0]):
             # dL/dω = vee(R^T G - G^T R) for dR = R [ω]x
@@ -221,7 +221,7 @@ if numba is not None:
                     w[3 * i + j] = R[n, i] * G[n, j] + R[n, 3 + i] * G[n, 3 + j] + R[n, 6 + i] * G[n, 6 + j]
             _polar_vjp(R, S, n, w[7] - w[5], w[2] - w[6], w[3] - w[1], out)
 
-    @numba.njit(cache=False, inline="always")
+    @numba.njit(cache=CACHE, inline="always")
     def _compose_quat(x, C, n):
         # x [9] a rotation (row-major), C[n] a wxyz quaternion -> (q, p): q = ±quat(x) ⊗ C/|C| with q_w >= 0,
         # p = ±quat(x) with the same sign. Shepperd: the largest of 4w^2, 4x^2, 4y^2, 4z^2 decides the branch.
@@ -253,7 +253,7 @@ if numba is not None:
         sgn = -1.0 if qw < 0.0 else 1.0
         return sgn * qw, sgn * qx, sgn * qy, sgn * qz, sgn * pw, sgn * px, sgn * py, sgn * pz
 
-    @numba.njit(parallel=True, cache=False)
+    @numba.njit(parallel=True, cache=CACHE)
     def _posed_quat_forward(M, C, tol, max_iters, save, Q, P, R, S):
         # M [N, 9] blends (det > 0), C [N, 4] unit wxyz -> Q [N, 4] = ±quat(polar(M)) ⊗ C with Q_w >= 0;
         # ``save``: also P [N, 4] = ±quat(polar(M)) (the sign folded in), R [N, 9] polar factor, S [N, 9] = R^T M
@@ -271,7 +271,7 @@ if numba is not None:
             if save:
                 P[n, 0], P[n, 1], P[n, 2], P[n, 3] = pw, px, py, pz
 
-    @numba.njit(parallel=True, cache=False)
+    @numba.njit(parallel=True, cache=CACHE)
     def _pose_lbs(crow, col, val, T, X, C, tol, max_iters, min_det, means, Q):
         # Per point n of every frame b: A = sum_j val T[b, col] (the LBS blend, 3x4), means = A[:, :3] X + A[:, 3],
         # Q = ±quat(polar(A[:, :3])) ⊗ C (as _posed_quat_forward). Returns how many blends had det <= min_det
@@ -310,7 +310,7 @@ if numba is not None:
                 Q[b, n, 0], Q[b, n, 1], Q[b, n, 2], Q[b, n, 3] = qw, qx, qy, qz
         return bad
 
-    @numba.njit(parallel=True, cache=False)
+    @numba.njit(parallel=True, cache=CACHE)
     def _posed_quat_backward(C, P, R, S, G, g_M, g_C):
         # Q = P ⊗ C (bilinear); dP = P ⊗ (0, ω) / 2 for dR = R [ω]x; then the polar VJP.
         for n in numba.prange(C.shape[0]):
@@ -343,7 +343,7 @@ if numba is not None:
 
 if numba is not None:
 
-    @numba.njit(parallel=True, cache=False, fastmath=True)
+    @numba.njit(parallel=True, cache=CACHE, fastmath=True)
     def _csr_rows(crow, col, val, values, out):  # out[b, n] = sum_j val[j] values[b, col[j]] over row n
         B = values.shape[0]
         D = values.shape[2]
@@ -422,7 +422,7 @@ def sparse_interpolate_fast(values: Tensor, matrix: Tensor) -> Tensor | None:
 
 if numba is not None:
 
-    @numba.njit(parallel=True, cache=False, fastmath=True)
+    @numba.njit(parallel=True, cache=CACHE, fastmath=True)
     def _interp_deltas_packed(crow, col, val, coeffs, extra, basis, sh0_at, out):
         # basis [N, K, D]: every property's basis side by side (GaussianAvatar.pack_bases_); the row
         # product runs over D contiguous floats (vectorised); the anchors' SH0 delta lands at sh0_at.

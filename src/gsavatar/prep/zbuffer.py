@@ -55,7 +55,7 @@ import numpy as np
 from gsavatar.data_schema.capture import Camera
 from gsavatar.geometry.camera import distort, undistort
 
-from gsavatar.utils.compiled import set_threads  # noqa: F401  (threads and threading layer: one place)
+from gsavatar.utils.compiled import CACHE, set_threads  # noqa: F401  (threads and threading layer: one place)
 
 
 # --------------------------------------------------------------------------- grid
@@ -242,7 +242,7 @@ def region_rgba(
 # --------------------------------------------------------------------------- rasterizer
 
 
-@numba.njit(cache=False, error_model="numpy", nogil=True, inline="always")
+@numba.njit(cache=CACHE, error_model="numpy", nogil=True, inline="always")
 def _raster_tri(ax, ay, az, bx, by, bz, cx, cy, cz, tri, gfx, gskew, gcx, gfy, gcy, tri_id, invz):
     """Rasterize one camera-space triangle (all z > 0) into tri_id [H, W] int32 / invz [H, W] float64."""
     H, W = tri_id.shape
@@ -278,7 +278,7 @@ def _raster_tri(ax, ay, az, bx, by, bz, cx, cy, cz, tri, gfx, gskew, gcx, gfy, g
                     tri_id[y, x] = tri
 
 
-@numba.njit(cache=False, error_model="numpy", nogil=True)
+@numba.njit(cache=CACHE, error_model="numpy", nogil=True)
 def rasterize(vc, faces, gfx, gskew, gcx, gfy, gcy, znear, cull_back, tri_id, invz, planes):
     """Triangle-id buffer of a camera-space mesh.
 
@@ -349,7 +349,7 @@ def rasterize(vc, faces, gfx, gskew, gcx, gfy, gcy, znear, cull_back, tri_id, in
             )
 
 
-@numba.njit(cache=False, error_model="numpy", nogil=True)
+@numba.njit(cache=CACHE, error_model="numpy", nogil=True)
 def transform(vertices, R, T):
     """Camera-space vertices ``R v + T``. vertices [V, 3] float64 -> [V, 3] float64 (no BLAS)."""
     V = vertices.shape[0]
@@ -492,7 +492,7 @@ def pack_camera(
 # --------------------------------------------------------------------------- per-texel sampling
 
 
-@numba.njit(cache=False, error_model="numpy", nogil=True, inline="always")
+@numba.njit(cache=CACHE, error_model="numpy", nogil=True, inline="always")
 def _adjacent(faces, a, b):
     """Triangles a and b share a vertex (faces [F, 3])."""
     for i in range(3):
@@ -502,7 +502,7 @@ def _adjacent(faces, a, b):
     return False
 
 
-@numba.njit(cache=False, error_model="numpy", nogil=True, inline="always")
+@numba.njit(cache=CACHE, error_model="numpy", nogil=True, inline="always")
 def _project_block(P, Nrm, s0, n, cp, min_cos, Hc, Wc, I00, FX, FY, RAY, TI):
     """Pass 1 of a block of texels s0 .. s0+n-1 in one view: branch-free, so LLVM vectorises it. Same float64
     operations, in the same order, as the numpy reference ``project_uv._sample_view``.
@@ -593,7 +593,7 @@ def _project_block(P, Nrm, s0, n, cp, min_cos, Hc, Wc, I00, FX, FY, RAY, TI):
         TI[j] = (iy * Wc + ix if inc else -1) if ing else -2
 
 
-@numba.njit(cache=False, error_model="numpy", nogil=True, inline="always")
+@numba.njit(cache=CACHE, error_model="numpy", nogil=True, inline="always")
 def _sample_block(
     s0, n, own_tri, faces, cp, img, u8, use_vis, tid, planes, eps, I00, FX, FY, RAY, TI, out, row0, stride, k
 ):
@@ -667,7 +667,7 @@ def _sample_block(
             k[j] += 1
 
 
-@numba.njit(cache=False, error_model="numpy", nogil=True, parallel=True)
+@numba.njit(cache=CACHE, error_model="numpy", nogil=True, parallel=True)
 def sample_view(P, Nrm, own_tri, faces, cp, img, u8, use_vis, tri_id, planes, eps, min_cos, rgb, ok):
     """Sample one view for every texel (see the module docstring; diagnostics and tests).
 
@@ -710,7 +710,7 @@ def sample_view(P, Nrm, own_tri, faces, cp, img, u8, use_vis, tri_id, planes, ep
 # --------------------------------------------------------------------------- fusion
 
 
-@numba.njit(cache=False, error_model="numpy", nogil=True, inline="always")
+@numba.njit(cache=CACHE, error_model="numpy", nogil=True, inline="always")
 def _fuse_one(s, row0, k, median_band, lo, hi, L, idx, keep, col, count, seen, i):
     """Fuse the k samples s[row0:row0+k] [k, 3] float32 (in view order) into col[i], count[i], seen[i]
     (scratch L float64, idx int64, keep bool, each of length >= k)."""
@@ -763,7 +763,7 @@ def _fuse_one(s, row0, k, median_band, lo, hi, L, idx, keep, col, count, seen, i
     col[i, 2] = np.float32(t2 / n_keep)
 
 
-@numba.njit(cache=False, error_model="numpy", nogil=True, parallel=True)
+@numba.njit(cache=CACHE, error_model="numpy", nogil=True, parallel=True)
 def fuse(rgb, ok, median_band, lo, hi, col, count, seen):
     """Fuse per-texel view samples: rgb [C, N, 3] float32, ok [C, N] bool (rgb ignored where not ok)
     -> col [N, 3] float32 (0 where nothing kept), count [N], seen [N] int64 (written in place).
@@ -811,7 +811,7 @@ BOUNDS_ROW: tuple[RowField, ...] = tuple(_bnd.fields)
 del _bnd
 
 
-@numba.njit(cache=False, error_model="numpy", nogil=True, inline="always")
+@numba.njit(cache=CACHE, error_model="numpy", nogil=True, inline="always")
 def _block_bounds(P, Nrm, s0, n, out):
     """Bounds of a block's texels for :func:`_faces_away`: out [BND_SIZE] float64 (:data:`BOUNDS_ROW`: centre,
     radius, unit normal-cone axis, cone half-angle) of the points P[:, s0:s0+n] and unit normals
@@ -856,7 +856,7 @@ def _block_bounds(P, Nrm, s0, n, out):
     out[BND_HALF_ANGLE] = 4.0 if zero or la <= 1e-9 else math.acos(max(-1.0, min(1.0, mindot))) + 1e-7
 
 
-@numba.njit(cache=False, error_model="numpy", nogil=True, inline="always")
+@numba.njit(cache=CACHE, error_model="numpy", nogil=True, inline="always")
 def _faces_away(bnd, cp, min_cos):
     """True when no texel of a block (bnd [BND_SIZE], :func:`_block_bounds`) can pass the facing test of the
     view whose packed camera is cp [CAM_SIZE] (its centre CAM_CENTER_X/Y/Z): every direction u from a texel to
@@ -878,7 +878,7 @@ def _faces_away(bnd, cp, min_cos):
     return g > 0 and math.cos(g) < min_cos - 1e-9
 
 
-@numba.njit(cache=False, error_model="numpy", nogil=True, parallel=True)
+@numba.njit(cache=CACHE, error_model="numpy", nogil=True, parallel=True)
 def project_frame(
     P,
     Nrm,
@@ -988,7 +988,7 @@ def project_frame(
 # --------------------------------------------------------------------------- surface
 
 
-@numba.njit(cache=False, error_model="numpy", nogil=True, parallel=True)
+@numba.njit(cache=CACHE, error_model="numpy", nogil=True, parallel=True)
 def surface(vertices, normals, corners, bary, P, Nrm):
     """Texel points and unit normals by barycentric interpolation.
 

@@ -23,7 +23,7 @@ import math
 import numpy as np
 import torch
 
-from gsavatar.utils.compiled import numba, set_threads
+from gsavatar.utils.compiled import CACHE, numba, set_threads
 
 from .projection import ALPHA_THRESHOLD
 
@@ -39,14 +39,14 @@ def available() -> bool:
 
 if numba is not None:
 
-    @numba.njit(cache=False, inline="always")
+    @numba.njit(cache=CACHE, inline="always")
     def _tile_origin(tid, tiles_x, tiles_y, tile_size):
         # global tile id (camera-major, then row, column) -> (camera, first column, first row)
         cam = tid // (tiles_x * tiles_y)
         rem = tid - cam * tiles_x * tiles_y
         return cam, (rem % tiles_x) * tile_size, (rem // tiles_x) * tile_size
 
-    @numba.njit(cache=False, inline="always")
+    @numba.njit(cache=CACHE, inline="always")
     def _raw_alpha(params, skip_sigma, q, dx, dy):
         # opacity exp(-sigma) of list entry q at offset (dx, dy) = mean - pixel centre; the forward and the
         # backward walk must take the same decisions, so both use this. 0 where sigma > skip_sigma[q]: alpha
@@ -56,7 +56,7 @@ if numba is not None:
             return 0.0
         return params[q, 5] * math.exp(-sigma)
 
-    @numba.njit(parallel=True, cache=False, fastmath=False)
+    @numba.njit(parallel=True, cache=CACHE, fastmath=False)
     def _forward_kernel(
         params, skip_sigma, colors, tile_ids, offsets, counts, width, height, tile_size, out, stop, counters
     ):
@@ -103,7 +103,7 @@ if numba is not None:
             counters[t, 0] = walked
             counters[t, 1] = used
 
-    @numba.njit(parallel=True, cache=False, fastmath=False)
+    @numba.njit(parallel=True, cache=CACHE, fastmath=False)
     def _backward_kernel(
         params, skip_sigma, colors, tile_ids, offsets, width, height, tile_size, stop, out, g_pix, g_q
     ):

@@ -7,6 +7,12 @@ shares libgomp with torch and, once started, raised torch's intra-op threads fro
 (measured: a 43,690-element ``mul`` went from 9 us to 1.6 ms on the 2-core box, and a training step
 from ~0.6 s to ~3 s); numba's default order probes TBB first, which warns on Debian's older TBB.
 ``NUMBA_THREADING_LAYER`` in the environment still wins.
+
+Compiling the kernels costs every new process 15-20 s on the 2-core box (measured 2026-12-07: a one-step
+``avatar-train avatar`` run spent 35 of its 42 profiled seconds in numba's compiler). numba's on-disk cache would
+write beside the installed sources, outside any folder the user named, so it is used only when the user names one:
+``NUMBA_CACHE_DIR`` set and non-empty turns ``cache=True`` on (:data:`CACHE`). ``scripts/test.sh`` and
+``scripts/demo.sh`` set it to ``.cache/numba`` in the checkout, beside the anny cache.
 """
 
 from __future__ import annotations
@@ -19,6 +25,9 @@ try:
     import numba
 except ImportError:  # pragma: no cover - exercised only where numba is not installed
     numba = None
+
+CACHE = bool(os.environ.get("NUMBA_CACHE_DIR"))
+"""Whether the kernels use numba's on-disk cache: only when ``NUMBA_CACHE_DIR`` names its folder."""
 
 if numba is not None and "NUMBA_THREADING_LAYER" not in os.environ:
     numba.config.THREADING_LAYER_PRIORITY = ["workqueue", "omp", "tbb"]
