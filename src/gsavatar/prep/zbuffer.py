@@ -878,7 +878,8 @@ def _faces_away(bnd, cp, min_cos):
     return g > 0 and math.cos(g) < min_cos - 1e-9
 
 
-@numba.njit(cache=CACHE, error_model="numpy", nogil=True, parallel=True)
+# not cached: it reads numba.get_num_threads() inside, a dynamic global numba cannot cache (it warns)
+@numba.njit(cache=False, error_model="numpy", nogil=True, parallel=True)
 def project_frame(
     P,
     Nrm,
