@@ -6,27 +6,31 @@
 # every source and oracle with benchmarks/predictor_psnr.py --oracles.
 #   bash benchmarks/trigger_experiment.sh                   # -> out/small_unlit_speed (about 45 min on the 2-core box)
 #   OUT=out/x SIGNAL=vertical_velocity STEPS=1200 bash benchmarks/trigger_experiment.sh
+#   WINDOW=16 bash benchmarks/trigger_experiment.sh         # the predictors' training window (default 8)
 # Re-running resumes (finished trainings are skipped). Needs the set-up of scripts/setup.sh.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-out/small_unlit_speed}
 SIGNAL=${SIGNAL:-speed}
 STEPS=${STEPS:-400}
+WINDOW=${WINDOW:-8}
+TAG=s$STEPS
+[ "$WINDOW" != 8 ] && TAG=${TAG}_w$WINDOW
 export ANNY_CACHE_DIR=${ANNY_CACHE_DIR:-$PWD/.cache/anny}
 export VTK_DEFAULT_OPENGL_WINDOW=${VTK_DEFAULT_OPENGL_WINDOW:-vtkEGLRenderWindow}
-PRED="--steps $STEPS --window 8 --model.latent-pca global --model.latent-pca-components 8 --ensemble 2 --model.world-orientation"
+PRED="--steps $STEPS --window $WINDOW --model.latent-pca global --model.latent-pca-components 8 --ensemble 2 --model.world-orientation"
 if [ ! -f "$OUT/capture/capture.json" ]; then
     PYTHONPATH=src .venv/bin/python benchmarks/trigger_capture.py "$OUT/capture" "$SIGNAL"
 fi
 .venv/bin/avatar-prep all --capture "$OUT/capture" --out "$OUT/dataset" --no-figures
 OMP_NUM_THREADS=2 .venv/bin/avatar-train avatar --dataset "$OUT/dataset" --out "$OUT/run_ours" --preset small
 # the two predictors side by side, one thread each
-OMP_NUM_THREADS=1 .venv/bin/avatar-train predictor --run "$OUT/run_ours" --out "$OUT/run_ours/predictor_s$STEPS" \
-    $PRED > "$OUT/predictor_s$STEPS.log" 2>&1 &
+OMP_NUM_THREADS=1 .venv/bin/avatar-train predictor --run "$OUT/run_ours" --out "$OUT/run_ours/predictor_$TAG" \
+    $PRED > "$OUT/predictor_$TAG.log" 2>&1 &
 full=$!
-OMP_NUM_THREADS=1 .venv/bin/avatar-train predictor --run "$OUT/run_ours" --out "$OUT/run_ours/predictor_nohist_s$STEPS" \
-    $PRED --model.history 1 --model.no-velocities > "$OUT/predictor_nohist_s$STEPS.log" 2>&1
+OMP_NUM_THREADS=1 .venv/bin/avatar-train predictor --run "$OUT/run_ours" --out "$OUT/run_ours/predictor_nohist_$TAG" \
+    $PRED --model.history 1 --model.no-velocities > "$OUT/predictor_nohist_$TAG.log" 2>&1
 wait "$full"
 OMP_NUM_THREADS=2 PYTHONPATH=src .venv/bin/python benchmarks/predictor_psnr.py --run "$OUT/run_ours" \
-    --predictors "full=$OUT/run_ours/predictor_s$STEPS/latest.pt" \
-    "nohist=$OUT/run_ours/predictor_nohist_s$STEPS/latest.pt" --every 3 --oracles --json "$OUT/oracles_s$STEPS.json"
+    --predictors "full=$OUT/run_ours/predictor_$TAG/latest.pt" \
+    "nohist=$OUT/run_ours/predictor_nohist_$TAG/latest.pt" --every 3 --oracles --json "$OUT/oracles_$TAG.json"
