@@ -12,7 +12,9 @@ Compiling the kernels costs every new process 15-20 s on the 2-core box (measure
 ``avatar-train avatar`` run spent 35 of its 42 profiled seconds in numba's compiler). numba's on-disk cache would
 write beside the installed sources, outside any folder the user named, so it is used only when the user names one:
 ``NUMBA_CACHE_DIR`` set and non-empty turns ``cache=True`` on (:data:`CACHE`). ``scripts/test.sh`` and
-``scripts/demo.sh`` set it to ``.cache/numba`` in the checkout, beside the anny cache.
+``scripts/demo.sh`` set it to ``.cache/numba`` in the checkout, beside the anny cache. numba recompiles a cached kernel
+when its own source file changes (timestamp and size), not when a file it calls into does: keep every compiled kernel
+calling only compiled functions of its own file (true of all of them today), or clear the folder.
 """
 
 from __future__ import annotations
