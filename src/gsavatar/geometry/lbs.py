@@ -143,11 +143,10 @@ class RigTensors:
         # round r multiplies the r-th factor (listed order) of every joint that has one into that joint.
         aa_slots = np.array(aa_starts, np.int64).reshape(-1, 1) + np.arange(3)
         self.aa_slots = torch.as_tensor(aa_slots, dtype=torch.long, device=device)  # [n_aa, 3]
-        factor_of, per_joint, e, a = [], [[] for _ in range(self.num_joints)], 0, len(eul_slots)
+        per_joint, e, a = [[] for _ in range(self.num_joints)], 0, len(eul_slots)  # factor indices of each joint
         for j, kind, _ in order:
-            factor_of.append(e if kind == "euler" else a)
+            per_joint[j].append(e if kind == "euler" else a)
             e, a = (e + 1, a) if kind == "euler" else (e, a + 1)
-            per_joint[j].append(factor_of[-1])
         rounds = max((len(f) for f in per_joint), default=0)
         self.rounds = [
             (
