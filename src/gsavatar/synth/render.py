@@ -287,6 +287,26 @@ def _lambert(normals: np.ndarray, dirs: np.ndarray, shading: Shading) -> np.ndar
     return (shading.ambient + shading.diffuse * np.maximum(n @ l, 0.0)).astype(np.float32)
 
 
+def box_downsample(image: np.ndarray, s: int) -> np.ndarray:
+    """Mean of every ``s x s`` block of a channels-last image. [H*s, W*s, C] -> [H, W, C]
+
+    Bit-identical to ``image.reshape(H, s, W, s, C).mean((1, 3))`` (its test oracle): the block's samples are
+    added in the order numpy's reduction adds them, row by row, then divided by ``s * s``. numpy reduces those
+    two strided axes element by element (~25 ms for one 512^2 x 3 float32 image, most of a 256^2 view's
+    shading time); ``s * s`` whole-image additions take ~3 ms.
+    """
+    Hs, Ws, C = image.shape
+    if s < 1 or Hs % s or Ws % s:
+        raise ValueError(f"image of {Hs}x{Ws} does not split into {s}x{s} blocks")
+    blocks = image.reshape(Hs // s, s, Ws // s, s, C)
+    acc = blocks[:, 0, :, 0].copy()
+    for i in range(s):
+        for j in range(s):
+            if i or j:
+                acc += blocks[:, i, :, j]
+    return acc / np.asarray(s * s, image.dtype)
+
+
 def render_view(
     scene: FrameScene,
     cam: Camera,
@@ -307,8 +327,8 @@ def render_view(
         )
     color, cov = scene.shade(rays.reshape(-1, 6), texture, shading, background)
     H, W = cam.height, cam.width
-    img = color.reshape(H, s, W, s, 3).mean((1, 3))
-    mask = cov.reshape(H, s, W, s).mean((1, 3))
+    img = box_downsample(color.reshape(H * s, W * s, 3), s)
+    mask = cov.reshape(H, s, W, s).mean((1, 3))  # contiguous innermost axis: numpy's mean is fast here
     return RenderOutput(np.clip(img, 0, 1).astype(np.float32), mask.astype(np.float32))
 
 
