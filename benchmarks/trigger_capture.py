@@ -1,8 +1,10 @@
 """`small` without the room's light, its ``sleeve`` hysteresis flipped by another signal of the right hand.
 
 The capture of benchmarks/trigger_experiment.sh (docs/train.md "What a derivative trigger changes"):
-``python benchmarks/trigger_capture.py OUT [SIGNAL]`` with SIGNAL one of the motion-effect signals (default
-``speed``; the preset's is ``height``). Everything else is the ``small`` preset rendered with ``shading=False``.
+``python benchmarks/trigger_capture.py OUT [SIGNAL] [--drop NAME ...]`` with SIGNAL one of the motion-effect signals
+(default ``speed``; the preset's is ``height``); ``--drop`` leaves the named motion effects out (e.g. ``--drop sleeve``:
+only the accumulator and the spring, the mechanisms driven by derivatives of the motion). Everything else is the
+``small`` preset rendered with ``shading=False``.
 """
 
 from __future__ import annotations
@@ -16,14 +18,23 @@ from gsavatar.synth.make import make_capture
 from gsavatar.synth.presets import PRESETS, SynthConfig
 
 
-def trigger_config(signal: str) -> SynthConfig:
-    """The ``small`` preset, unlit, with the ``sleeve`` effect's signal replaced by ``signal``."""
+def trigger_config(signal: str, drop: tuple[str, ...] = ()) -> SynthConfig:
+    """The ``small`` preset, unlit, with the ``sleeve`` effect's signal replaced by ``signal`` and the effects named in
+    ``drop`` left out."""
     cfg = PRESETS["small"]
-    effects = tuple(
-        dataclasses.replace(e, signal=signal) if e.name == "sleeve" else e for e in cfg.appearance.motion_effects
-    )
-    if not any(e.name == "sleeve" for e in effects):
+    names = [e.name for e in cfg.appearance.motion_effects]
+    if "sleeve" not in names:
         raise ValueError("the small preset has no 'sleeve' motion effect")
+    unknown = sorted(set(drop) - set(names))
+    if unknown:
+        raise ValueError(f"--drop {unknown}: the small preset's motion effects are {names}")
+    if set(drop) == set(names):
+        raise ValueError("--drop would leave no motion effect")
+    effects = tuple(
+        dataclasses.replace(e, signal=signal) if e.name == "sleeve" else e
+        for e in cfg.appearance.motion_effects
+        if e.name not in drop
+    )
     for e in effects:
         e.check()  # an unknown signal is refused here, before any rendering
     return dataclasses.replace(
@@ -35,9 +46,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", type=Path, help="capture directory to write (must not hold a capture)")
     ap.add_argument("signal", nargs="?", default="speed", help="the sleeve's new signal (default: speed)")
+    ap.add_argument("--drop", nargs="*", default=[], metavar="NAME", help="motion effects to leave out")
     args = ap.parse_args()
     try:
-        cfg = trigger_config(args.signal)
+        cfg = trigger_config(args.signal, tuple(args.drop))
     except ValueError as e:
         raise SystemExit(f"trigger_capture.py: {e}") from None
     make_capture(cfg, args.out, default_anny_cache(), progress=True)

@@ -38,3 +38,16 @@ def test_only_the_sleeve_signal_and_the_light_change(trigger_capture, signal):
 def test_an_unknown_signal_is_refused_before_rendering(trigger_capture):
     with pytest.raises(ValueError, match="sleeve.*unknown signal 'bogus'"):
         trigger_capture.trigger_config("bogus")
+
+
+def test_drop_leaves_out_only_the_named_effects(trigger_capture):
+    base = PRESETS["small"]
+    cfg = trigger_capture.trigger_config("height", ("sleeve",))
+    old = {e.name: e for e in base.appearance.motion_effects}
+    assert [e.name for e in cfg.appearance.motion_effects] == [n for n in old if n != "sleeve"]
+    assert all(e == old[e.name] for e in cfg.appearance.motion_effects)
+    assert not cfg.shading
+    with pytest.raises(ValueError, match="motion effects are"):
+        trigger_capture.trigger_config("height", ("cuff",))
+    with pytest.raises(ValueError, match="no motion effect"):
+        trigger_capture.trigger_config("height", tuple(old))
