@@ -51,3 +51,14 @@ def test_drop_leaves_out_only_the_named_effects(trigger_capture):
         trigger_capture.trigger_config("height", ("cuff",))
     with pytest.raises(ValueError, match="no motion effect"):
         trigger_capture.trigger_config("height", tuple(old))
+
+
+def test_dynamic_candidate_has_only_derivative_driven_effects(trigger_capture):
+    cfg = trigger_capture.dynamic_config()
+    base = {e.name: e for e in PRESETS["small"].appearance.motion_effects}
+    effects = {e.name: e for e in cfg.appearance.motion_effects}
+    assert not cfg.shading and set(effects) == {"sweat", "hem", "flap"}
+    assert all(e.signal in trigger_capture.DERIVATIVE_SIGNALS for e in effects.values())
+    assert effects["sweat"] == dataclasses.replace(base["sweat"], strength=0.8)
+    assert effects["hem"] == dataclasses.replace(base["hem"], y_range=(0.50, 0.70))
+    assert effects["flap"].mechanism == "spring" and effects["flap"].region == base["sleeve"].region
