@@ -5,7 +5,7 @@ filter against numpy's block mean it replaced (bit-identical; tests/synth/test_s
 
 Uses a written capture's body (its template, motion frame 0 posed with its rig), cameras and the ground-truth
 texture of frame 0, at the preset's supersampling (2: a 512^2 ray grid for a 256^2 view). Prints ms per camera of
-ray casting, shading (texture lookup and Lambert), the old and the new box filter and the whole ``render_view``,
+ray casting, shading (cast and texture lookup, unlit), the old and the new box filter, the whole ``render_view``,
 medians over ``--repeats``, and the largest difference of the two filters (0 expected).
 """
 

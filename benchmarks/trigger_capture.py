@@ -24,6 +24,17 @@ DERIVATIVE_SIGNALS = ("speed", "vertical_velocity", "vertical_acceleration")
 """Signals one pose does not show (a height does)."""
 
 
+def unlit_small(effects: tuple[MotionEffect, ...]) -> SynthConfig:
+    """The ``small`` preset rendered without the light, with these motion effects (each checked here, so an unknown
+    signal is refused before any rendering)."""
+    for e in effects:
+        e.check()
+    cfg = PRESETS["small"]
+    return dataclasses.replace(
+        cfg, shading=False, appearance=dataclasses.replace(cfg.appearance, motion_effects=effects)
+    )
+
+
 def trigger_config(signal: str, drop: tuple[str, ...] = ()) -> SynthConfig:
     """The ``small`` preset, unlit, with the ``sleeve`` effect's signal replaced by ``signal`` and the effects named in
     ``drop`` left out."""
@@ -41,11 +52,7 @@ def trigger_config(signal: str, drop: tuple[str, ...] = ()) -> SynthConfig:
         for e in cfg.appearance.motion_effects
         if e.name not in drop
     )
-    for e in effects:
-        e.check()  # an unknown signal is refused here, before any rendering
-    return dataclasses.replace(
-        cfg, shading=False, appearance=dataclasses.replace(cfg.appearance, motion_effects=effects)
-    )
+    return unlit_small(effects)
 
 
 def dynamic_config() -> SynthConfig:
@@ -76,11 +83,7 @@ def dynamic_config() -> SynthConfig:
                     damping=0.3,
                 )
             )
-    for e in effects:
-        e.check()
-    return dataclasses.replace(
-        cfg, shading=False, appearance=dataclasses.replace(cfg.appearance, motion_effects=tuple(effects))
-    )
+    return unlit_small(tuple(effects))
 
 
 def main() -> None:

@@ -292,8 +292,8 @@ def box_downsample(image: np.ndarray, s: int) -> np.ndarray:
 
     Bit-identical to ``image.reshape(H, s, W, s, C).mean((1, 3))`` (its test oracle): the block's samples are
     added in the order numpy's reduction adds them, row by row, then divided by ``s * s``. numpy reduces those
-    two strided axes element by element (~25 ms for one 512^2 x 3 float32 image, most of a 256^2 view's
-    shading time); ``s * s`` whole-image additions take ~3 ms.
+    two strided axes element by element (13-24 ms for one 512^2 x 3 float32 image on the 2-core box, against
+    ~50 ms for shading the view); ``s * s`` whole-image additions take ~3 ms (benchmarks/bench_synth_render.py).
     """
     Hs, Ws, C = image.shape
     if s < 1 or Hs % s or Ws % s:
