@@ -228,3 +228,27 @@ def test_mean_crossings_count_flips_and_flag_states_with_few_events():
     flips[:, 1] = np.tile([0, 1], 20)  # 39
     w = few_event_states({"crossings": {"train": mean_crossings(flips, flips.mean(0))}}, ["cuff", "swing"])
     assert len(w) == 1 and "'cuff'" in w[0] and "2 times" in w[0] and MIN_TRAIN_CROSSINGS > 2
+
+
+def test_wide_ridge_uses_the_dual_form_with_the_same_solution():
+    """More columns than rows (a history of every pose feature): the dual solve against the primal closed form."""
+    rng = np.random.default_rng(4)
+    X, Y = rng.normal(size=(30, 80)), rng.normal(size=(30, 2))
+    mu, sd, W, ym = ridge_fit(X, Y, alpha=3.0)
+    Z = (X - X.mean(0)) / X.std(0)
+    np.testing.assert_allclose(W, np.linalg.solve(Z.T @ Z + 3.0 * np.eye(80), Z.T @ (Y - Y.mean(0))), atol=1e-10)
+
+
+def test_fairness_pose_read_picks_enough_components():
+    """A state that is a low-variance pose feature (outside the 12 leading PCA components): the current pose tells
+    it exactly, and the check must say so (a 12-component read alone does not: what hid a periodic motion's spring
+    phase in the pose, docs/synth.md)."""
+    rng = np.random.default_rng(5)
+    F = 500
+    feats = rng.normal(0, 1, (F, 40)) * np.r_[np.full(30, 5.0), np.ones(10)]  # 30 loud features, 10 quiet
+    state = feats[:, 35]
+    train, test = np.arange(400), np.arange(400, F)
+    only12 = predictability(feats, state[:, None], train, test, components=12)
+    r = predictability(feats, state[:, None], train, test)
+    assert only12["pose_only"] < 0.3
+    assert r["pose_only"] > 0.95 and r["pose_only_components"] == [40]

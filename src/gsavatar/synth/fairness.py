@@ -1,7 +1,8 @@
 """Fairness check of a capture: can its appearance states be predicted from the pose, or from the pose history?
 
-One simple regressor (ridge regression on PCA-reduced pose features, its regularisation chosen by
-cross-validation over contiguous blocks of the training frames) is fit twice on the training frames:
+One simple regressor (ridge regression on PCA-reduced pose features, its regularisation and its number of PCA
+components chosen by cross-validation over contiguous blocks of the training frames) is fit twice on the training
+frames:
 
 - ``pose_only``: features of the current frame ``t`` alone;
 - ``history``: the same features of frames ``t-N+1..t`` (clamped at the sequence start), given to the
@@ -9,12 +10,14 @@ cross-validation over contiguous blocks of the training frames) is fit twice on 
   invertible linear map of the stacked frames, so the same information; each column is standardised before
   the ridge, so its shrinkage acts on the motion, not on ``N`` near-copies of the pose).
 
-Each state gets its own regularisation, predictions are clipped to the training range of each state, and
-both are scored on the test frames by R^2 pooled over the (standardised) states: ``1 - sum SSE / sum SST``,
-SST around the test frames' own mean. A capture whose appearance the motion history causes has ``history``
-clearly above ``pose_only``; one whose appearance is random in time has both near or below 0. Per frame the
-features are the joint-local pose parameters and the joints' root-relative positions in the heading frame
-(reduced by PCA), plus the root height as it is (heading and position in the room carry no appearance).
+Each state gets its own regularisation and number of components (:data:`COMPONENTS`: a pose read from 12
+components missed what a periodic motion's pose tells of a spring's phase, docs/synth.md), predictions are clipped
+to the training range of each state, and both are scored on the test frames by R^2 pooled over the (standardised)
+states: ``1 - sum SSE / sum SST``, SST around the test frames' own mean. A capture whose appearance the motion
+history causes has ``history`` clearly above ``pose_only``; one whose appearance is random in time has both near or
+below 0. Per frame the features are the joint-local pose parameters and the joints' root-relative positions in the
+heading frame (reduced by PCA), plus the root height as it is (heading and position in the room carry no
+appearance).
 """
 
 from __future__ import annotations
@@ -30,6 +33,8 @@ HISTORY = 10
 """Poses in the history window of the ``history`` regressor (the paper's N_b)."""
 ALPHAS = tuple(10.0**k for k in range(-3, 8))
 """Ridge regularisations tried by :func:`ridge_cv` (features standardised; wide enough that CV never picks an end)."""
+COMPONENTS: tuple[int | None, ...] = (12, 24, 48, None)
+"""PCA components of the per-frame features tried by cross-validation (None: every feature, standardised)."""
 
 
 def pose_features(pose: np.ndarray, root_translation: np.ndarray, joints: np.ndarray | None = None) -> np.ndarray:
@@ -75,7 +80,11 @@ def ridge_fit(X: np.ndarray, Y: np.ndarray, alpha: float) -> tuple[np.ndarray, n
     sd = np.where(sd > 1e-9, sd, 1.0)
     Z = (X - mu) / sd
     ym = Y.mean(0)
-    W = np.linalg.solve(Z.T @ Z + alpha * np.eye(Z.shape[1]), Z.T @ (Y - ym))
+    n, D = Z.shape
+    if D > n:  # the same solution in its dual form: (Z^T Z + a I)^-1 Z^T = Z^T (Z Z^T + a I)^-1
+        W = Z.T @ np.linalg.solve(Z @ Z.T + alpha * np.eye(n), Y - ym)
+    else:
+        W = np.linalg.solve(Z.T @ Z + alpha * np.eye(D), Z.T @ (Y - ym))
     return mu, sd, W, ym
 
 
@@ -95,6 +104,13 @@ def pooled_r2(pred: np.ndarray, target: np.ndarray) -> float:
 def ridge_cv(X: np.ndarray, Y: np.ndarray, folds: int = 5, alphas: tuple[float, ...] = ALPHAS) -> float:
     """Ridge regularisation (one of ``alphas``) with the lowest squared error over ``folds`` contiguous blocks of
     rows."""
+    return ridge_cv_error(X, Y, folds, alphas)[0]
+
+
+def ridge_cv_error(
+    X: np.ndarray, Y: np.ndarray, folds: int = 5, alphas: tuple[float, ...] = ALPHAS
+) -> tuple[float, float]:
+    """:func:`ridge_cv`'s choice and its summed squared validation error. -> (alpha, error)"""
     n = len(X)
     edges = np.linspace(0, n, min(folds, n) + 1).astype(int)
     best, best_err = alphas[0], np.inf
@@ -109,7 +125,7 @@ def ridge_cv(X: np.ndarray, Y: np.ndarray, folds: int = 5, alphas: tuple[float, 
             err += float(((ridge_predict(m, X[va]) - Y[va]) ** 2).sum())
         if err < best_err:
             best, best_err = a, err
-    return best
+    return best, best_err
 
 
 MIN_TRAIN_CROSSINGS = 6
@@ -140,16 +156,17 @@ def few_event_states(fairness: dict, names: list[str]) -> list[str]:
     ]
 
 
-def reduce_features(x: np.ndarray, train: np.ndarray, components: int = 12, raw_columns: int = 0) -> np.ndarray:
+def reduce_features(x: np.ndarray, train: np.ndarray, components: int | None = 12, raw_columns: int = 0) -> np.ndarray:
     """Per-frame features standardised on the ``train`` rows, all but the last ``raw_columns`` reduced to their first
-    ``components`` PCA components (of the training rows): keeps the history regressor small. [F, D] -> [F, <= c + r]
-    """
+    ``components`` PCA components (of the training rows; None: all of them, i.e. the standardised features
+    rotated): keeps the history regressor small. [F, D] -> [F, <= c + r]"""
     x = np.asarray(x, np.float64)
     mu, sd = x[train].mean(0), x[train].std(0)
     z = (x - mu) / np.where(sd > 1e-9, sd, 1.0)
     keep = x.shape[1] - raw_columns
     _, _, vt = np.linalg.svd(z[train][:, :keep], full_matrices=False)
-    return np.concatenate([z[:, :keep] @ vt[: min(components, vt.shape[0])].T, z[:, keep:]], 1)
+    c = vt.shape[0] if components is None else min(components, vt.shape[0])
+    return np.concatenate([z[:, :keep] @ vt[:c].T, z[:, keep:]], 1)
 
 
 def standardise_states(states: np.ndarray, train: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -160,19 +177,31 @@ def standardise_states(states: np.ndarray, train: np.ndarray) -> tuple[np.ndarra
 
 
 def ridge_r2(
-    X: np.ndarray, y: np.ndarray, train: np.ndarray, test: np.ndarray, alphas: tuple[float, ...] = ALPHAS
-) -> tuple[float, list[float], list[float]]:
+    X: np.ndarray | list[np.ndarray],
+    y: np.ndarray,
+    train: np.ndarray,
+    test: np.ndarray,
+    alphas: tuple[float, ...] = ALPHAS,
+    return_choice: bool = False,
+):
     """Each state's ridge (its own regularisation by :func:`ridge_cv`) fit on the ``train`` rows, predictions clipped
-    to the state's training range, scored on the ``test`` rows. X [F, D], y [F, E]
-    -> (pooled R^2, per-state R^2 [E], chosen alphas [E])"""
+    to the state's training range, scored on the ``test`` rows. X [F, D] (or a list of candidate feature matrices,
+    one chosen per state by the same cross-validation), y [F, E]
+    -> (pooled R^2, per-state R^2 [E], chosen alphas [E]) (+ chosen candidate indices [E] with ``return_choice``)"""
+    Xs = X if isinstance(X, list) else [X]
     pred = np.empty((len(test), y.shape[1]))
-    chosen = []
+    chosen, which = [], []
     for e in range(y.shape[1]):
-        chosen.append(ridge_cv(X[train], y[train][:, [e]], alphas=alphas))
-        fit = ridge_fit(X[train], y[train][:, [e]], chosen[-1])
+        cv = [ridge_cv_error(Xc[train], y[train][:, [e]], alphas=alphas) for Xc in Xs]
+        i = int(np.argmin([err for _, err in cv]))
+        chosen.append(cv[i][0])
+        which.append(i)
+        fit = ridge_fit(Xs[i][train], y[train][:, [e]], chosen[-1])
         # Clipped to the training range: a state never leaves it, and novel test poses must not extrapolate.
-        pred[:, e] = np.clip(ridge_predict(fit, X[test])[:, 0], y[train][:, e].min(), y[train][:, e].max())
+        pred[:, e] = np.clip(ridge_predict(fit, Xs[i][test])[:, 0], y[train][:, e].min(), y[train][:, e].max())
     per_state = [pooled_r2(pred[:, [e]], y[test][:, [e]]) for e in range(y.shape[1])]
+    if return_choice:
+        return pooled_r2(pred, y[test]), per_state, chosen, which
     return pooled_r2(pred, y[test]), per_state, chosen
 
 
@@ -182,33 +211,38 @@ def predictability(
     train: np.ndarray,
     test: np.ndarray,
     history: int = HISTORY,
-    components: int = 12,
+    components: int | None | tuple[int | None, ...] = COMPONENTS,
     raw_columns: int = 0,
 ) -> dict:
     """R^2 on ``test`` rows of the pose-only and the history regressor fit on ``train`` rows.
 
     features [F, D] per-frame inputs (the last ``raw_columns`` are kept as they are, the others reduced to
-    ``components`` PCA components), states [F, E] targets, train/test frame indices.
+    ``components`` PCA components; a tuple: each state and regressor picks one by cross-validation), states [F, E]
+    targets, train/test frame indices.
     -> {"pose_only", "history", "per_state": {"pose_only": [E], "history": [E]},
         "crossings": {"train": [E], "test": [E]} (:func:`mean_crossings` of the training mean), ...}
     """
     train, test = np.asarray(train, np.int64), np.asarray(test, np.int64)
     if len(train) < 4 or len(test) < 2:
         raise ValueError(f"need >= 4 train and >= 2 test frames, got {len(train)} and {len(test)}")
-    z = reduce_features(features, train, components, raw_columns)
+    cands = tuple(components) if isinstance(components, tuple) else (components,)
+    zs = [reduce_features(features, train, c, raw_columns) for c in cands]
     y, ym = standardise_states(states, train)
     out: dict = {"per_state": {}}
-    for name, X in (("pose_only", z), ("history", history_features(z, history))):
-        out[name], out["per_state"][name], out[f"{name}_alpha"] = ridge_r2(X, y, train, test)
-    raw = np.asarray(states, np.float64).reshape(len(z), -1)
+    for name, Xs in (("pose_only", zs), ("history", [history_features(z, history) for z in zs])):
+        out[name], out["per_state"][name], out[f"{name}_alpha"], which = ridge_r2(
+            Xs, y, train, test, return_choice=True
+        )
+        out[f"{name}_components"] = [zs[i].shape[1] - raw_columns for i in which]
+    raw = np.asarray(states, np.float64).reshape(len(zs[0]), -1)
     out["crossings"] = {"train": mean_crossings(raw[train], ym), "test": mean_crossings(raw[test], ym)}
     out.update(
         {
             "metric": "R^2 on test frames, pooled over standardised states",
             "history_frames": history,
-            "regressor": f"ridge on {z.shape[1] - raw_columns} pose PCA components (+ {raw_columns} raw); history: "
-            "frame t's and the frame-to-frame changes; columns standardised, alpha per state by 5-fold contiguous "
-            "CV, clipped to the training range",
+            "regressor": f"ridge on {'/'.join(str(z.shape[1] - raw_columns) for z in zs)} pose PCA components "
+            f"(+ {raw_columns} raw); history: frame t's and the frame-to-frame changes; columns standardised, "
+            "components and alpha per state by 5-fold contiguous CV, clipped to the training range",
         }
     )
     return out
