@@ -103,7 +103,7 @@ def main() -> None:
         help="also render two upper bounds: the encoder's latents through the first predictor's output clamp, and "
         "ridges from the capture's true states (gt/motion_states.npz), from the root's world orientation and from "
         "both to the encoder's latents, fit on the training frames (what a predictor that knew them exactly could "
-        "render)",
+        "render), and the test frames' mean latent (a constant: the share of the gain that is the segment's level)",
     )
     a = ap.parse_args()
     torch.set_num_threads(1)
@@ -154,6 +154,8 @@ def main() -> None:
         if a.predictors:
             first = predictor_from_checkpoint(Path(a.predictors[0].partition("=")[2].split("+")[0]))
             sources["oracle: encoder clamped"] = first.clamp_latents(enc)
+        # a constant that knows the test segment: how much of the gain is the segment's level, not its frames
+        sources["oracle: test frames' mean latent"] = enc.mean(0, keepdim=True).expand_as(enc)
         sources.update(
             oracle_latents(cap.root, targets, frames, np.asarray(cap.motion.root_rotation), np.asarray(cap.motion.pose))
         )

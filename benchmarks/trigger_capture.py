@@ -6,7 +6,8 @@ The capture of benchmarks/trigger_experiment.sh (docs/train.md "What a derivativ
 only the accumulator and the spring, the mechanisms driven by derivatives of the motion). Everything else is the
 ``small`` preset rendered with ``shading=False``. ``--dynamic`` writes a design candidate instead (not a one-change
 control): ``small`` unlit with only mechanisms driven by derivatives of the motion, made stronger
-(:func:`dynamic_config`).
+(:func:`dynamic_config`); with ``--drop`` its named effects are left out (``--dynamic --drop sweat``: only the two
+springs).
 """
 
 from __future__ import annotations
@@ -36,8 +37,8 @@ def unlit_small(effects: tuple[MotionEffect, ...]) -> SynthConfig:
 
 
 def trigger_config(signal: str, drop: tuple[str, ...] = ()) -> SynthConfig:
-    """The ``small`` preset, unlit, with the ``sleeve`` effect's signal replaced by ``signal`` and the effects named in
-    ``drop`` left out."""
+    """The ``small`` preset, unlit, with the ``sleeve`` effect's signal replaced by ``signal`` and the effects
+    named in ``drop`` left out."""
     cfg = PRESETS["small"]
     names = [e.name for e in cfg.appearance.motion_effects]
     if "sleeve" not in names:
@@ -55,13 +56,20 @@ def trigger_config(signal: str, drop: tuple[str, ...] = ()) -> SynthConfig:
     return unlit_small(effects)
 
 
-def dynamic_config() -> SynthConfig:
+def dynamic_config(drop: tuple[str, ...] = ()) -> SynthConfig:
     """``small`` unlit, every motion effect driven by a derivative of the motion, stronger than the preset's: the
     ``sweat`` accumulator darkens by up to 80% (50%), the ``hem`` spring tints a wider band (0.50-0.70 of the body
     height instead of 0.56-0.66), and the ``sleeve`` hysteresis on the hand's height (which a no-history predictor
     latches from its own latents) is replaced by ``flap``, a spring (1.2 Hz, damping 0.3) on the feet's vertical
-    acceleration that dyes the trousers."""
+    acceleration that dyes the trousers. ``drop`` leaves the named effects of the candidate out (``sweat``, ``hem``,
+    ``flap``)."""
     cfg = PRESETS["small"]
+    names = {"flap" if e.name == "sleeve" else e.name for e in cfg.appearance.motion_effects}
+    unknown = sorted(set(drop) - names)
+    if unknown:
+        raise ValueError(f"--drop {unknown}: the --dynamic capture's motion effects are {sorted(names)}")
+    if set(drop) == names:
+        raise ValueError("--drop would leave no motion effect")
     effects = []
     for e in cfg.appearance.motion_effects:
         if e.name == "sweat":
@@ -83,7 +91,62 @@ def dynamic_config() -> SynthConfig:
                     damping=0.3,
                 )
             )
-    return unlit_small(tuple(effects))
+    return unlit_small(tuple(e for e in effects if e.name not in drop))
+
+
+def second_springs_config() -> SynthConfig:
+    """``second`` (CMU 01_03, another body and seed) unlit, its history-caused appearance three springs only: ``swing``
+    (1.5 Hz, damping 0.4) on the chest's vertical acceleration moves a light band on the shirt's hem, ``sway`` (1.3
+    Hz, 0.3) on the head's vertical acceleration tints the upper shirt, ``kick`` (1.0 Hz, 0.35) on the feet's vertical
+    velocity dyes the trousers. 01_03's motion is not a repeated cycle, so no single pose tells a spring's phase
+    (unlike ``small``'s hopping: docs/train.md "Springs on a periodic motion")."""
+    cfg = PRESETS["second"]
+    effects = (
+        MotionEffect(
+            "swing",
+            "spring",
+            "vertical_acceleration",
+            ("chest",),
+            "shirt",
+            "band",
+            strength=0.06,
+            color=(0.95, 0.92, 0.85),
+            relative_to=None,
+            y_range=(0.57, 0.65),
+            frequency_hz=1.5,
+            damping=0.4,
+        ),
+        MotionEffect(
+            "sway",
+            "spring",
+            "vertical_acceleration",
+            ("head",),
+            "shirt",
+            "tint",
+            strength=1.0,
+            relative_to=None,
+            y_range=(0.68, 0.86),
+            frequency_hz=1.3,
+            damping=0.3,
+        ),
+        MotionEffect(
+            "kick",
+            "spring",
+            "vertical_velocity",
+            ("left_foot", "right_foot"),
+            "trousers",
+            "dye",
+            color=(0.7, 0.9, 1.5),
+            relative_to=None,
+            frequency_hz=1.0,
+            damping=0.35,
+        ),
+    )
+    for e in effects:
+        e.check()
+    return dataclasses.replace(
+        cfg, shading=False, appearance=dataclasses.replace(cfg.appearance, motion_effects=effects)
+    )
 
 
 def main() -> None:
@@ -92,9 +155,15 @@ def main() -> None:
     ap.add_argument("signal", nargs="?", default="speed", help="the sleeve's new signal (default: speed)")
     ap.add_argument("--drop", nargs="*", default=[], metavar="NAME", help="motion effects to leave out")
     ap.add_argument("--dynamic", action="store_true", help="the design candidate of dynamic_config() instead")
+    ap.add_argument("--second-springs", action="store_true", help="second_springs_config() instead")
     args = ap.parse_args()
     try:
-        cfg = dynamic_config() if args.dynamic else trigger_config(args.signal, tuple(args.drop))
+        if args.second_springs:
+            cfg = second_springs_config()
+        elif args.dynamic:
+            cfg = dynamic_config(tuple(args.drop))
+        else:
+            cfg = trigger_config(args.signal, tuple(args.drop))
     except ValueError as e:
         raise SystemExit(f"trigger_capture.py: {e}") from None
     make_capture(cfg, args.out, default_anny_cache(), progress=True)

@@ -9,6 +9,7 @@
 #   WINDOW=16 bash benchmarks/trigger_experiment.sh         # the predictors' training window (default 8)
 #   OUT=out/small_unlit_dyn DROP=sleeve SIGNAL=height bash benchmarks/trigger_experiment.sh  # without the sleeve
 #   OUT=out/small_dynamic DYNAMIC=1 bash benchmarks/trigger_experiment.sh  # trigger_capture.py --dynamic
+#   OUT=out/second_springs SECOND_SPRINGS=1 bash benchmarks/trigger_experiment.sh  # --second-springs
 # Re-running resumes (finished trainings are skipped). Needs the set-up of scripts/setup.sh.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -18,6 +19,7 @@ STEPS=${STEPS:-400}
 WINDOW=${WINDOW:-8}
 DROP=${DROP:-}  # motion effects left out of the capture (space-separated names)
 DYNAMIC=${DYNAMIC:-0}  # 1: the design candidate of trigger_capture.py --dynamic instead
+SECOND_SPRINGS=${SECOND_SPRINGS:-0}  # 1: trigger_capture.py --second-springs (01_03, three springs, unlit) instead
 TAG=s$STEPS
 [ "$WINDOW" != 8 ] && TAG=${TAG}_w$WINDOW
 export ANNY_CACHE_DIR=${ANNY_CACHE_DIR:-$PWD/.cache/anny}
@@ -25,7 +27,7 @@ export VTK_DEFAULT_OPENGL_WINDOW=${VTK_DEFAULT_OPENGL_WINDOW:-vtkEGLRenderWindow
 PRED="--steps $STEPS --window $WINDOW --model.latent-pca global --model.latent-pca-components 8 --ensemble 2 --model.world-orientation"
 if [ ! -f "$OUT/capture/capture.json" ]; then
     PYTHONPATH=src .venv/bin/python benchmarks/trigger_capture.py "$OUT/capture" "$SIGNAL" ${DROP:+--drop $DROP} \
-        $([ "$DYNAMIC" = 1 ] && echo --dynamic)
+        $([ "$DYNAMIC" = 1 ] && echo --dynamic) $([ "$SECOND_SPRINGS" = 1 ] && echo --second-springs)
 fi
 .venv/bin/avatar-prep all --capture "$OUT/capture" --out "$OUT/dataset" --no-figures
 OMP_NUM_THREADS=2 .venv/bin/avatar-train avatar --dataset "$OUT/dataset" --out "$OUT/run_ours" --preset small

@@ -62,3 +62,14 @@ def test_dynamic_candidate_has_only_derivative_driven_effects(trigger_capture):
     assert effects["sweat"] == dataclasses.replace(base["sweat"], strength=0.8)
     assert effects["hem"] == dataclasses.replace(base["hem"], y_range=(0.50, 0.70))
     assert effects["flap"].mechanism == "spring" and effects["flap"].region == base["sleeve"].region
+
+
+def test_dynamic_drop_leaves_out_only_the_named_effects(trigger_capture):
+    full = {e.name: e for e in trigger_capture.dynamic_config().appearance.motion_effects}
+    cfg = trigger_capture.dynamic_config(("sweat",))
+    assert [e.name for e in cfg.appearance.motion_effects] == [n for n in full if n != "sweat"]
+    assert all(e == full[e.name] for e in cfg.appearance.motion_effects)
+    with pytest.raises(ValueError, match="motion effects are"):
+        trigger_capture.dynamic_config(("sleeve",))  # replaced by flap in the candidate
+    with pytest.raises(ValueError, match="no motion effect"):
+        trigger_capture.dynamic_config(tuple(full))
