@@ -7,7 +7,7 @@ import dataclasses
 import pytest
 from benchmark_modules import load_benchmark
 
-from gsavatar.synth.presets import PRESETS
+from gsavatar.synth.presets import PRESETS, SynthConfig
 
 
 @pytest.fixture(scope="module")
@@ -73,3 +73,13 @@ def test_dynamic_drop_leaves_out_only_the_named_effects(trigger_capture):
         trigger_capture.dynamic_config(("sleeve",))  # replaced by flap in the candidate
     with pytest.raises(ValueError, match="no motion effect"):
         trigger_capture.dynamic_config(tuple(full))
+
+
+def test_second_springs_are_springs_on_derivatives_of_second(trigger_capture):
+    cfg = trigger_capture.second_springs_config()
+    base = PRESETS["second"]
+    assert not cfg.shading and cfg.bvh_path == base.bvh_path and cfg.seed == base.seed
+    effects = cfg.appearance.motion_effects
+    assert [e.name for e in effects] == ["swing", "sway", "kick"]
+    assert all(e.mechanism == "spring" and e.signal in trigger_capture.DERIVATIVE_SIGNALS for e in effects)
+    assert SynthConfig.from_json(cfg.to_json()) == cfg
