@@ -268,6 +268,45 @@ def test_ensemble_trains_members_on_their_own_windows_and_rebuilds_from_its_chec
         PredictorTrainer(ens, data, [(0, 60)], train_cfg(steps=4, ensemble=3), tmp_path / "x")
 
 
+def test_parallel_members_train_as_in_one_process_and_resume(tmp_path):
+    """Members trained side by side in forked processes (``parallel_members``, what the 2-core box runs) against the
+    naive oracle, the same ensemble trained in this process: the same weights, optimiser state and logs, across a
+    checkpoint boundary and a resumed run."""
+    torch.set_num_threads(1)
+    data = synthetic(60)
+
+    def run(out: Path, parallel: bool, **kw) -> PredictorTrainer:
+        ens = PredictorEnsemble([_member(MEMBER_SEED_STRIDE * k, data) for k in range(2)])
+        cfg = train_cfg(**{"steps": 6, "ensemble": 2, "checkpoint_every": 4, "log_every": 2, **kw})
+        cfg = dataclasses.replace(cfg, parallel_members=parallel)
+        tr = PredictorTrainer(ens, data, [(0, 60)], cfg, out)
+        tr.train()
+        return tr
+
+    seq, par = run(tmp_path / "seq", False), run(tmp_path / "par", True)
+    assert not seq.parallel() and par.parallel()
+    ss, sp = seq.model.state_dict(), par.model.state_dict()
+    assert all(torch.allclose(ss[k], sp[k], atol=1e-6, rtol=0) for k in ss)
+    init = PredictorEnsemble([_member(MEMBER_SEED_STRIDE * k, data) for k in range(2)]).state_dict()
+    assert any(not torch.equal(sp[k], init[k]) for k in sp)  # it trained
+    opt_s, opt_p = seq.optim.state_dict()["state"], par.optim.state_dict()["state"]
+    assert opt_s.keys() == opt_p.keys() and len(opt_s) == len(list(seq.model.parameters()))
+    for i in opt_s:
+        for key in ("step", "exp_avg", "exp_avg_sq"):
+            torch.testing.assert_close(opt_s[i][key], opt_p[i][key], atol=1e-6, rtol=0)
+    ls = [json.loads(x) for x in (tmp_path / "seq" / "metrics.jsonl").read_text().splitlines()]
+    lp = [json.loads(x) for x in (tmp_path / "par" / "metrics.jsonl").read_text().splitlines()]
+    assert [x["step"] for x in lp] == [2, 4, 6] == [x["step"] for x in ls]
+    for a, b in zip(ls, lp):
+        assert a.keys() == b.keys() and all(abs(a[k] - b[k]) < 1e-4 for k in a)
+    assert not (tmp_path / "par" / ".members").exists()
+    run(tmp_path / "res", True, max_steps_this_run=3)  # stops inside the first interval, then resumes
+    res = run(tmp_path / "res", True)
+    assert res.step == 6
+    sr = res.model.state_dict()
+    assert all(torch.allclose(sp[k], sr[k], atol=1e-6, rtol=0) for k in sp)
+
+
 def perturbed_unroll_case():
     """A fitted predictor with perturbed (non-trivial) weights, three 5-frame windows, their GT context and the
     clean unroll. -> (data, model, rows, seg_start, ctx, clean)"""

@@ -23,6 +23,7 @@ import copy
 import dataclasses
 import json
 import math
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -118,6 +119,12 @@ class PredictorTrainConfig:
     """K: predictors trained side by side, member k from seed ``seed + 1000 k`` (its own initialisation and
     windows), averaged at every driving step (:class:`~gsavatar.models.predictor.PredictorEnsemble`); 1 = one
     predictor (the paper's). K times the training and predictor time; measured in docs/train.md."""
+    parallel_members: bool = True
+    """With ``ensemble`` > 1 and no more torch threads than members (the 2-core box): train the members side by side,
+    one forked process of one thread each, between checkpoints, instead of one after the other in this process. The
+    same optimisation (the members share nothing: their losses are summed and AdamW updates every parameter from its
+    own gradient), so the same predictor up to float rounding, with the same checkpoints, logs and resuming; measured
+    in docs/performance.md. Off (in this process) with ``ema`` > 0, dropout, or more threads than members."""
     checkpoint_every: int = 250
     """Steps between checkpoints (and at the end)."""
     log_every: int = 50
@@ -578,12 +585,15 @@ class PredictorTrainer:
             modules["predictor_train"] = self.model
         save_checkpoint(self.ckpt, step=self.step, config=self.config, modules=modules, optimizer=self.optim)
 
-    def loss(self, step: int) -> tuple[Tensor, dict[str, float]]:
-        """Summed dual-context (+ InitialLatentNet) losses of every member, each on its own windows; logs are the
-        members' means."""
-        cfg, K = self.cfg, len(self.members)
+    def loss(self, step: int, members: list[int] | None = None) -> tuple[Tensor, dict[str, float]]:
+        """Summed dual-context (+ InitialLatentNet) losses of every member (or of the members with these indices),
+        each on its own windows; logs are the members' means."""
+        cfg = self.cfg
+        ks = list(range(len(self.members))) if members is None else members
+        K = len(ks)
         total, logs = None, {}
-        for k, m in enumerate(self.members):
+        for k in ks:
+            m = self.members[k]
             g = step_generator(cfg.seed + MEMBER_SEED_STRIDE * k, step)
             rows, seg = self.sampler.sample(cfg.batch_size, g)
             d = dual_context_loss(
@@ -603,6 +613,87 @@ class PredictorTrainer:
         logs["total"] = float(total.detach())
         return total, logs
 
+    def parallel(self) -> bool:
+        """Whether :meth:`train` runs the members in forked processes (``parallel_members``)."""
+        return (
+            self.cfg.parallel_members
+            and len(self.members) > 1
+            and self.average is None
+            and all(m.config.dropout == 0 for m in self.members)
+            and torch.get_num_threads() <= len(self.members)
+            and hasattr(os, "fork")
+            and all(p.device.type == "cpu" for p in self.model.parameters())
+        )
+
+    def _log(self, step: int, logs: dict[str, float], rate: float) -> None:
+        with open(self.out / "metrics.jsonl", "a") as f:
+            f.write(json.dumps({"step": step, **{k: round(v, 6) for k, v in logs.items()}}) + "\n")
+        print(
+            f"[predictor] step {step}/{self.cfg.steps} loss {logs['total']:.4f} gt_l1 {logs['gt_l1']:.4f} "
+            f"zero_l1 {logs['zero_l1']:.4f} ({rate:.2f} steps/s)",
+            flush=True,
+        )
+
+    def _member_steps(self, k: int, end: int, stop: int, path: Path) -> None:
+        """In a forked child: member ``k``'s steps ``self.step..end-1`` with the shared optimiser (the other members'
+        parameters get no gradient, so AdamW leaves them and their state alone); writes the member's weights, its
+        parameters' optimiser state and its logs at the log steps to ``path``."""
+        torch.set_num_threads(1)
+        cfg, m = self.cfg, self.members[k]
+        logs_at = {}
+        for step in range(self.step, end):
+            m.signals_only = step < cfg.signal_warmup_steps
+            loss, logs = self.loss(step, [k])
+            self.optim.zero_grad(set_to_none=True)
+            loss.backward()
+            self.optim.step()
+            if m.initial is not None and cfg.initial_weight > 0:
+                m.initial_ready.fill_(True)
+            if (step + 1) % cfg.log_every == 0 or step + 1 == stop:
+                logs_at[step + 1] = logs
+        own = {id(p) for p in m.parameters()}
+        params = [p for g in self.optim.param_groups for p in g["params"]]
+        state = {i: self.optim.state[p] for i, p in enumerate(params) if id(p) in own and p in self.optim.state}
+        torch.save({"member": m.state_dict(), "optim": state, "logs": logs_at}, path)
+
+    def _parallel_steps(self, end: int, stop: int, t0: float, n0: int) -> dict[str, float]:
+        """Steps ``self.step..end-1`` of every member side by side (:meth:`_member_steps`), merged back into this
+        process's members and optimiser; writes the log lines. -> the last logs"""
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("fork")
+        tmp = self.out / ".members"
+        tmp.mkdir(exist_ok=True)
+        paths = [tmp / f"member{k}.pt" for k in range(len(self.members))]
+        procs = [ctx.Process(target=self._member_steps, args=(k, end, stop, p)) for k, p in enumerate(paths)]
+        for p in procs:
+            p.start()
+        for p in procs:
+            p.join()
+        failed = [k for k, p in enumerate(procs) if p.exitcode != 0]
+        if failed:
+            raise RuntimeError(
+                f"predictor ensemble member(s) {failed} failed in their training process (exit codes "
+                f"{[procs[k].exitcode for k in failed]}); set parallel_members = False to train them in this process"
+            )
+        params = [p for g in self.optim.param_groups for p in g["params"]]
+        member_logs = []
+        for m, path in zip(self.members, paths):
+            d = torch.load(path, weights_only=False)
+            m.load_state_dict(d["member"])
+            for i, st in d["optim"].items():
+                self.optim.state[params[i]] = st
+            member_logs.append(d["logs"])
+            path.unlink()
+        tmp.rmdir()
+        logs = {}
+        for step in sorted(member_logs[0]):
+            per = [ml[step] for ml in member_logs]
+            logs = {key: sum(p[key] for p in per) / len(per) for key in per[0]}
+            logs["total"] = sum(p["total"] for p in per)
+            self._log(step, logs, (step - n0) / (time.perf_counter() - t0))
+        return logs
+
     def train(self) -> dict:
         cfg = self.cfg
         self.out.mkdir(parents=True, exist_ok=True)
@@ -610,6 +701,12 @@ class PredictorTrainer:
         set_resume_hint(resume_hint(self.ckpt, self.step))
         t0, n0, logs = time.perf_counter(), self.step, {}
         self.model.train()
+        parallel = self.parallel()
+        while parallel and self.step < stop:  # the members side by side, one checkpoint interval at a time
+            end = min(stop, (self.step // cfg.checkpoint_every + 1) * cfg.checkpoint_every)
+            logs = self._parallel_steps(end, stop, t0, n0)
+            self.step = end
+            self.save()
         while self.step < stop:
             for m in self.members:  # from the step, so a resumed run is in the right phase
                 m.signals_only = self.step < cfg.signal_warmup_steps
@@ -624,14 +721,7 @@ class PredictorTrainer:
             if self.average is not None:
                 self._update_average()
             if self.step % cfg.log_every == 0 or self.step == stop:
-                rate = (self.step - n0) / (time.perf_counter() - t0)
-                with open(self.out / "metrics.jsonl", "a") as f:
-                    f.write(json.dumps({"step": self.step, **{k: round(v, 6) for k, v in logs.items()}}) + "\n")
-                print(
-                    f"[predictor] step {self.step}/{cfg.steps} loss {logs['total']:.4f} gt_l1 {logs['gt_l1']:.4f} "
-                    f"zero_l1 {logs['zero_l1']:.4f} ({rate:.2f} steps/s)",
-                    flush=True,
-                )
+                self._log(self.step, logs, (self.step - n0) / (time.perf_counter() - t0))
             if self.step % cfg.checkpoint_every == 0 or self.step == stop:
                 self.save()
         for m in self.members:
