@@ -651,6 +651,8 @@ class PredictorTrainer:
                 m.initial_ready.fill_(True)
             if (step + 1) % cfg.log_every == 0 or step + 1 == stop:
                 logs_at[step + 1] = logs
+                if k == 0:  # live progress (the members' merged lines follow at the checkpoint)
+                    print(f"[predictor] member 0: step {step + 1}/{cfg.steps} loss {logs['total']:.4f}", flush=True)
         own = {id(p) for p in m.parameters()}
         params = [p for g in self.optim.param_groups for p in g["params"]]
         state = {i: self.optim.state[p] for i, p in enumerate(params) if id(p) in own and p in self.optim.state}
