@@ -37,7 +37,7 @@ def memory_columns(z: np.ndarray, timescales=MEMORY_TIMESCALES) -> np.ndarray:
 
 
 def _score(X: np.ndarray, y: np.ndarray, train: np.ndarray, test: np.ndarray, alphas) -> dict:
-    r2, per_state, chosen = fair.ridge_r2(X, y, train, test, alphas)
+    r2, per_state, chosen, _ = fair.ridge_r2(X, y, train, test, alphas)
     return {"r2": r2, "per_state": per_state, "alpha": chosen}
 
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from gsavatar.synth.body import build_anny_body, default_anny_cache
 from gsavatar.synth.fairness import pose_features, predictability
-from gsavatar.synth.make import load_motion
+from gsavatar.synth.make import load_motion, split_frames
 from gsavatar.synth.motion_effects import effect_level, joint_signal
 from gsavatar.synth.presets import PRESETS
 from gsavatar.synth.render import pose_joint_positions
@@ -52,8 +52,7 @@ def main() -> None:
     joints = pose_joint_positions(rig, motion.pose, motion.root_rotation, motion.root_translation)
     names = [j.name for j in rig.joints]
     levels = np.stack([effect_level(e, joint_signal(joints, names, e, cfg.fps), cfg.fps)[0] for e in effects], 1)
-    n_test = round(cfg.num_frames * cfg.test_fraction)
-    train, test = np.arange(cfg.num_frames - n_test), np.arange(cfg.num_frames - n_test, cfg.num_frames)
+    train, test = (np.asarray(f) for f in split_frames(cfg))
     r = predictability(pose_features(motion.pose, motion.root_translation, joints), levels, train, test, raw_columns=1)
     print(
         json.dumps(

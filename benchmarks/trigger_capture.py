@@ -25,12 +25,12 @@ DERIVATIVE_SIGNALS = ("speed", "vertical_velocity", "vertical_acceleration")
 """Signals one pose does not show (a height does)."""
 
 
-def unlit_small(effects: tuple[MotionEffect, ...]) -> SynthConfig:
-    """The ``small`` preset rendered without the light, with these motion effects (each checked here, so an unknown
-    signal is refused before any rendering)."""
+def unlit(preset: str, effects: tuple[MotionEffect, ...]) -> SynthConfig:
+    """A preset rendered without the light, with these motion effects (each checked here, so an unknown signal is
+    refused before any rendering)."""
     for e in effects:
         e.check()
-    cfg = PRESETS["small"]
+    cfg = PRESETS[preset]
     return dataclasses.replace(
         cfg, shading=False, appearance=dataclasses.replace(cfg.appearance, motion_effects=effects)
     )
@@ -53,7 +53,7 @@ def trigger_config(signal: str, drop: tuple[str, ...] = ()) -> SynthConfig:
         for e in cfg.appearance.motion_effects
         if e.name not in drop
     )
-    return unlit_small(effects)
+    return unlit("small", effects)
 
 
 def dynamic_config(drop: tuple[str, ...] = ()) -> SynthConfig:
@@ -91,7 +91,7 @@ def dynamic_config(drop: tuple[str, ...] = ()) -> SynthConfig:
                     damping=0.3,
                 )
             )
-    return unlit_small(tuple(e for e in effects if e.name not in drop))
+    return unlit("small", tuple(e for e in effects if e.name not in drop))
 
 
 def second_springs_config() -> SynthConfig:
@@ -100,7 +100,6 @@ def second_springs_config() -> SynthConfig:
     Hz, 0.3) on the head's vertical acceleration tints the upper shirt, ``kick`` (1.0 Hz, 0.35) on the feet's vertical
     velocity dyes the trousers. 01_03's motion is not a repeated cycle, so no single pose tells a spring's phase
     (unlike ``small``'s hopping: docs/train.md "Springs on a periodic motion")."""
-    cfg = PRESETS["second"]
     effects = (
         MotionEffect(
             "swing",
@@ -142,11 +141,7 @@ def second_springs_config() -> SynthConfig:
             damping=0.35,
         ),
     )
-    for e in effects:
-        e.check()
-    return dataclasses.replace(
-        cfg, shading=False, appearance=dataclasses.replace(cfg.appearance, motion_effects=effects)
-    )
+    return unlit("second", effects)
 
 
 def main() -> None:

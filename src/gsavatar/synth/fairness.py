@@ -182,12 +182,11 @@ def ridge_r2(
     train: np.ndarray,
     test: np.ndarray,
     alphas: tuple[float, ...] = ALPHAS,
-    return_choice: bool = False,
-):
+) -> tuple[float, list[float], list[float], list[int]]:
     """Each state's ridge (its own regularisation by :func:`ridge_cv`) fit on the ``train`` rows, predictions clipped
     to the state's training range, scored on the ``test`` rows. X [F, D] (or a list of candidate feature matrices,
     one chosen per state by the same cross-validation), y [F, E]
-    -> (pooled R^2, per-state R^2 [E], chosen alphas [E]) (+ chosen candidate indices [E] with ``return_choice``)"""
+    -> (pooled R^2, per-state R^2 [E], chosen alphas [E], chosen candidate indices [E])"""
     Xs = X if isinstance(X, list) else [X]
     pred = np.empty((len(test), y.shape[1]))
     chosen, which = [], []
@@ -200,9 +199,7 @@ def ridge_r2(
         # Clipped to the training range: a state never leaves it, and novel test poses must not extrapolate.
         pred[:, e] = np.clip(ridge_predict(fit, Xs[i][test])[:, 0], y[train][:, e].min(), y[train][:, e].max())
     per_state = [pooled_r2(pred[:, [e]], y[test][:, [e]]) for e in range(y.shape[1])]
-    if return_choice:
-        return pooled_r2(pred, y[test]), per_state, chosen, which
-    return pooled_r2(pred, y[test]), per_state, chosen
+    return pooled_r2(pred, y[test]), per_state, chosen, which
 
 
 def predictability(
@@ -230,9 +227,7 @@ def predictability(
     y, ym = standardise_states(states, train)
     out: dict = {"per_state": {}}
     for name, Xs in (("pose_only", zs), ("history", [history_features(z, history) for z in zs])):
-        out[name], out["per_state"][name], out[f"{name}_alpha"], which = ridge_r2(
-            Xs, y, train, test, return_choice=True
-        )
+        out[name], out["per_state"][name], out[f"{name}_alpha"], which = ridge_r2(Xs, y, train, test)
         out[f"{name}_components"] = [zs[i].shape[1] - raw_columns for i in which]
     raw = np.asarray(states, np.float64).reshape(len(zs[0]), -1)
     out["crossings"] = {"train": mean_crossings(raw[train], ym), "test": mean_crossings(raw[test], ym)}

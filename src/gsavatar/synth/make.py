@@ -109,19 +109,25 @@ def coupling_slot(rig: Rig, pose: np.ndarray, train_frames: np.ndarray, name: st
     return 0, names[0]
 
 
-def default_splits(cfg: SynthConfig, cameras: dict[str, Camera]) -> dict[str, Split]:
-    """Test = the tail ``test_fraction`` of the frames and 1-3 held-out dome cameras."""
+def split_frames(cfg: SynthConfig) -> tuple[list[int], list[int]]:
+    """Train and test frames: the test segment is the tail ``test_fraction`` of the frames (at least one of each)."""
     F = cfg.num_frames
     if F < 2:
         raise ValueError(f"num_frames must be >= 2 to split train/test, got {F}")
     n_test = min(F - 1, max(1, int(round(F * cfg.test_fraction))))
+    return list(range(F - n_test)), list(range(F - n_test, F))
+
+
+def default_splits(cfg: SynthConfig, cameras: dict[str, Camera]) -> dict[str, Split]:
+    """Test = the tail ``test_fraction`` of the frames (:func:`split_frames`) and 1-3 held-out dome cameras."""
+    train, test = split_frames(cfg)
     wanted = [c for c in ("full01", "upper00", "lower00")[: cfg.test_cameras] if c in cameras]
     if not wanted:
         wanted = [next(iter(cameras))]
     train_cams = [c for c in cameras if c not in wanted]
     if not train_cams:
         raise ValueError("need at least one training camera besides the held-out test cameras")
-    return {"train": Split(list(range(F - n_test)), train_cams), "test": Split(list(range(F - n_test, F)), wanted)}
+    return {"train": Split(train, train_cams), "test": Split(test, wanted)}
 
 
 # --------------------------------------------------------------------------- per-frame work

@@ -613,6 +613,22 @@ class PredictorTrainer:
         logs["total"] = float(total.detach())
         return total, logs
 
+    def _optimise(self, step: int, members: list[int] | None = None) -> dict[str, float]:
+        """One AdamW step at ``step`` of every member (or of the members with these indices; the others get no
+        gradient, so AdamW leaves them and their state alone). -> the step's logs"""
+        ks = range(len(self.members)) if members is None else members
+        for k in ks:  # from the step, so a resumed run is in the right phase
+            self.members[k].signals_only = step < self.cfg.signal_warmup_steps
+        loss, logs = self.loss(step, members)
+        self.optim.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optim.step()
+        for k in ks:
+            m = self.members[k]
+            if m.initial is not None and self.cfg.initial_weight > 0:
+                m.initial_ready.fill_(True)
+        return logs
+
     def parallel(self) -> bool:
         """Whether :meth:`train` runs the members in forked processes (``parallel_members``)."""
         return (
@@ -635,20 +651,13 @@ class PredictorTrainer:
         )
 
     def _member_steps(self, k: int, end: int, stop: int, path: Path) -> None:
-        """In a forked child: member ``k``'s steps ``self.step..end-1`` with the shared optimiser (the other members'
-        parameters get no gradient, so AdamW leaves them and their state alone); writes the member's weights, its
-        parameters' optimiser state and its logs at the log steps to ``path``."""
+        """In a forked child: member ``k``'s steps ``self.step..end-1`` (:meth:`_optimise`); writes the member's
+        weights, its parameters' optimiser state and its logs at the log steps to ``path``."""
         torch.set_num_threads(1)
         cfg, m = self.cfg, self.members[k]
         logs_at = {}
         for step in range(self.step, end):
-            m.signals_only = step < cfg.signal_warmup_steps
-            loss, logs = self.loss(step, [k])
-            self.optim.zero_grad(set_to_none=True)
-            loss.backward()
-            self.optim.step()
-            if m.initial is not None and cfg.initial_weight > 0:
-                m.initial_ready.fill_(True)
+            logs = self._optimise(step, [k])
             if (step + 1) % cfg.log_every == 0 or step + 1 == stop:
                 logs_at[step + 1] = logs
                 if k == 0:  # live progress (the members' merged lines follow at the checkpoint)
@@ -710,16 +719,8 @@ class PredictorTrainer:
             self.step = end
             self.save()
         while self.step < stop:
-            for m in self.members:  # from the step, so a resumed run is in the right phase
-                m.signals_only = self.step < cfg.signal_warmup_steps
-            loss, logs = self.loss(self.step)
-            self.optim.zero_grad(set_to_none=True)
-            loss.backward()
-            self.optim.step()
+            logs = self._optimise(self.step)
             self.step += 1
-            for m in self.members:
-                if m.initial is not None and cfg.initial_weight > 0:
-                    m.initial_ready.fill_(True)
             if self.average is not None:
                 self._update_average()
             if self.step % cfg.log_every == 0 or self.step == stop:
