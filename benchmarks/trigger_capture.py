@@ -1,11 +1,11 @@
-"""`small` without the room's light, its ``sleeve`` hysteresis flipped by another signal of the right hand.
+"""`small_lit` (the demo capture until 2026-12-08) without the room's light, its ``sleeve`` flipped by another signal.
 
 The capture of benchmarks/trigger_experiment.sh (docs/train.md "What a derivative trigger changes"):
 ``python benchmarks/trigger_capture.py OUT [SIGNAL] [--drop NAME ...]`` with SIGNAL one of the motion-effect signals
 (default ``speed``; the preset's is ``height``); ``--drop`` leaves the named motion effects out (e.g. ``--drop sleeve``:
 only the accumulator and the spring, the mechanisms driven by derivatives of the motion). Everything else is the
-``small`` preset rendered with ``shading=False``. ``--dynamic`` writes a design candidate instead (not a one-change
-control): ``small`` unlit with only mechanisms driven by derivatives of the motion, made stronger
+``small_lit`` preset rendered with ``shading=False``. ``--dynamic`` writes a design candidate instead (not a one-change
+control): ``small_lit`` unlit with only mechanisms driven by derivatives of the motion, made stronger
 (:func:`dynamic_config`); with ``--drop`` its named effects are left out (``--dynamic --drop sweat``: only the two
 springs).
 """
@@ -19,7 +19,7 @@ from pathlib import Path
 from gsavatar.synth.body import default_anny_cache
 from gsavatar.synth.make import make_capture
 from gsavatar.synth.motion_effects import MotionEffect
-from gsavatar.synth.presets import PRESETS, SynthConfig
+from gsavatar.synth.presets import PRESETS, SECOND_SPRINGS, SynthConfig
 
 DERIVATIVE_SIGNALS = ("speed", "vertical_velocity", "vertical_acceleration")
 """Signals one pose does not show (a height does)."""
@@ -37,15 +37,15 @@ def unlit(preset: str, effects: tuple[MotionEffect, ...]) -> SynthConfig:
 
 
 def trigger_config(signal: str, drop: tuple[str, ...] = ()) -> SynthConfig:
-    """The ``small`` preset, unlit, with the ``sleeve`` effect's signal replaced by ``signal`` and the effects
+    """The ``small_lit`` preset, unlit, with the ``sleeve`` effect's signal replaced by ``signal`` and the effects
     named in ``drop`` left out."""
-    cfg = PRESETS["small"]
+    cfg = PRESETS["small_lit"]
     names = [e.name for e in cfg.appearance.motion_effects]
     if "sleeve" not in names:
-        raise ValueError("the small preset has no 'sleeve' motion effect")
+        raise ValueError("the small_lit preset has no 'sleeve' motion effect")
     unknown = sorted(set(drop) - set(names))
     if unknown:
-        raise ValueError(f"--drop {unknown}: the small preset's motion effects are {names}")
+        raise ValueError(f"--drop {unknown}: the small_lit preset's motion effects are {names}")
     if set(drop) == set(names):
         raise ValueError("--drop would leave no motion effect")
     effects = tuple(
@@ -53,17 +53,17 @@ def trigger_config(signal: str, drop: tuple[str, ...] = ()) -> SynthConfig:
         for e in cfg.appearance.motion_effects
         if e.name not in drop
     )
-    return unlit("small", effects)
+    return unlit("small_lit", effects)
 
 
 def dynamic_config(drop: tuple[str, ...] = ()) -> SynthConfig:
-    """``small`` unlit, every motion effect driven by a derivative of the motion, stronger than the preset's: the
+    """``small_lit`` unlit, every motion effect driven by a derivative of the motion, stronger than the preset's: the
     ``sweat`` accumulator darkens by up to 80% (50%), the ``hem`` spring tints a wider band (0.50-0.70 of the body
     height instead of 0.56-0.66), and the ``sleeve`` hysteresis on the hand's height (which a no-history predictor
     latches from its own latents) is replaced by ``flap``, a spring (1.2 Hz, damping 0.3) on the feet's vertical
     acceleration that dyes the trousers. ``drop`` leaves the named effects of the candidate out (``sweat``, ``hem``,
     ``flap``)."""
-    cfg = PRESETS["small"]
+    cfg = PRESETS["small_lit"]
     names = {"flap" if e.name == "sleeve" else e.name for e in cfg.appearance.motion_effects}
     unknown = sorted(set(drop) - names)
     if unknown:
@@ -91,57 +91,15 @@ def dynamic_config(drop: tuple[str, ...] = ()) -> SynthConfig:
                     damping=0.3,
                 )
             )
-    return unlit("small", tuple(e for e in effects if e.name not in drop))
+    return unlit("small_lit", tuple(e for e in effects if e.name not in drop))
 
 
 def second_springs_config() -> SynthConfig:
-    """``second`` (CMU 01_03, another body and seed) unlit, its history-caused appearance three springs only: ``swing``
-    (1.5 Hz, damping 0.4) on the chest's vertical acceleration moves a light band on the shirt's hem, ``sway`` (1.3
-    Hz, 0.3) on the head's vertical acceleration tints the upper shirt, ``kick`` (1.0 Hz, 0.35) on the feet's vertical
-    velocity dyes the trousers. 01_03's motion is not a repeated cycle, so no single pose tells a spring's phase
-    (unlike ``small``'s hopping: docs/train.md "Springs on a periodic motion")."""
-    effects = (
-        MotionEffect(
-            "swing",
-            "spring",
-            "vertical_acceleration",
-            ("chest",),
-            "shirt",
-            "band",
-            strength=0.06,
-            color=(0.95, 0.92, 0.85),
-            relative_to=None,
-            y_range=(0.57, 0.65),
-            frequency_hz=1.5,
-            damping=0.4,
-        ),
-        MotionEffect(
-            "sway",
-            "spring",
-            "vertical_acceleration",
-            ("head",),
-            "shirt",
-            "tint",
-            strength=1.0,
-            relative_to=None,
-            y_range=(0.68, 0.86),
-            frequency_hz=1.3,
-            damping=0.3,
-        ),
-        MotionEffect(
-            "kick",
-            "spring",
-            "vertical_velocity",
-            ("left_foot", "right_foot"),
-            "trousers",
-            "dye",
-            color=(0.7, 0.9, 1.5),
-            relative_to=None,
-            frequency_hz=1.0,
-            damping=0.35,
-        ),
-    )
-    return unlit("second", effects)
+    """``second_lit`` (CMU 01_03, another body and seed) unlit, its history-caused appearance three springs only
+    (:data:`gsavatar.synth.presets.SECOND_SPRINGS`): the experiment that made them the ``second`` preset on
+    2026-12-08 (which this equals but for its name). 01_03's motion is not a repeated cycle, so no single pose tells a
+    spring's phase (unlike ``small_lit``'s hopping: docs/train.md "Springs on a periodic motion")."""
+    return unlit("second_lit", SECOND_SPRINGS)
 
 
 def main() -> None:

@@ -17,7 +17,7 @@ def trigger_capture():
 
 @pytest.mark.parametrize("signal", ["speed", "vertical_velocity", "height"])
 def test_only_the_sleeve_signal_and_the_light_change(trigger_capture, signal):
-    base = PRESETS["small"]
+    base = PRESETS["small_lit"]
     cfg = trigger_capture.trigger_config(signal)
     assert base.shading and not cfg.shading
     old = {e.name: e for e in base.appearance.motion_effects}
@@ -41,7 +41,7 @@ def test_an_unknown_signal_is_refused_before_rendering(trigger_capture):
 
 
 def test_drop_leaves_out_only_the_named_effects(trigger_capture):
-    base = PRESETS["small"]
+    base = PRESETS["small_lit"]
     cfg = trigger_capture.trigger_config("height", ("sleeve",))
     old = {e.name: e for e in base.appearance.motion_effects}
     assert [e.name for e in cfg.appearance.motion_effects] == [n for n in old if n != "sleeve"]
@@ -55,7 +55,7 @@ def test_drop_leaves_out_only_the_named_effects(trigger_capture):
 
 def test_dynamic_candidate_has_only_derivative_driven_effects(trigger_capture):
     cfg = trigger_capture.dynamic_config()
-    base = {e.name: e for e in PRESETS["small"].appearance.motion_effects}
+    base = {e.name: e for e in PRESETS["small_lit"].appearance.motion_effects}
     effects = {e.name: e for e in cfg.appearance.motion_effects}
     assert not cfg.shading and set(effects) == {"sweat", "hem", "flap"}
     assert all(e.signal in trigger_capture.DERIVATIVE_SIGNALS for e in effects.values())
@@ -77,9 +77,19 @@ def test_dynamic_drop_leaves_out_only_the_named_effects(trigger_capture):
 
 def test_second_springs_are_springs_on_derivatives_of_second(trigger_capture):
     cfg = trigger_capture.second_springs_config()
-    base = PRESETS["second"]
+    base = PRESETS["second_lit"]
     assert not cfg.shading and cfg.bvh_path == base.bvh_path and cfg.seed == base.seed
     effects = cfg.appearance.motion_effects
     assert [e.name for e in effects] == ["swing", "sway", "kick"]
     assert all(e.mechanism == "spring" and e.signal in trigger_capture.DERIVATIVE_SIGNALS for e in effects)
     assert SynthConfig.from_json(cfg.to_json()) == cfg
+    # the experiment became the `second` preset: the same capture but for the preset's name
+    assert dataclasses.replace(cfg, preset="second") == PRESETS["second"]
+
+
+def test_small_is_the_springs_candidate_at_a_varying_tempo(trigger_capture):
+    """`small` = the measured springs-only candidate (dynamic_config without sweat) played at a varying tempo."""
+    cand = trigger_capture.dynamic_config(("sweat",))
+    small = PRESETS["small"]
+    assert small.tempo_variation > 0 and cand.tempo_variation == 0 and not small.shading
+    assert dataclasses.replace(cand, preset="small", tempo_variation=small.tempo_variation) == small

@@ -176,10 +176,36 @@ def resample_motion(
     """Rotation-aware resampling (module docstring). pose [T,P], root_rotation [T,3],
     root_translation [T,3], face [T,E] | None -> the same at ``fps_out`` (float32) + the times.
     Output frames that land on a source frame are copied bit-exactly."""
+    t = resample_times(np.asarray(pose).shape[0], fps_in, fps_out)
+    return (*resample_motion_at(pose, root_rotation, root_translation, face, rig, t), t)
+
+
+def times_at(source_frames: np.ndarray, n_in: int) -> ResampleTimes:
+    """:class:`ResampleTimes` of arbitrary (fractional, non-decreasing or not) source frame positions, e.g. a
+    motion played at a varying tempo. source_frames [T_out] float in [0, n_in - 1]"""
+    s = np.asarray(source_frames, np.float64)
+    if s.ndim != 1 or not np.isfinite(s).all() or (s.size and (s.min() < -1e-9 or s.max() > n_in - 1 + 1e-9)):
+        raise ValueError(f"source frame positions must be finite and within [0, {n_in - 1}]")
+    s = np.clip(s, 0.0, n_in - 1)
+    i0 = np.floor(s + 1e-9).astype(np.int64)
+    i0 = np.minimum(i0, n_in - 1)
+    a = np.clip(s - i0, 0.0, 1.0)
+    a[a < 1e-9] = 0.0
+    return ResampleTimes(i0, np.minimum(i0 + 1, n_in - 1), a)
+
+
+def resample_motion_at(
+    pose: np.ndarray,
+    root_rotation: np.ndarray,
+    root_translation: np.ndarray,
+    face: np.ndarray | None,
+    rig: Rig,
+    t: ResampleTimes,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """:func:`resample_motion` at given source positions ``t`` (:func:`resample_times`, :func:`times_at`)."""
     pose = np.asarray(pose, np.float64)
     if pose.ndim != 2 or pose.shape[1] != rig.pose_dim:
         raise ValueError(f"pose must be [T, {rig.pose_dim}], got {list(pose.shape)}")
-    t = resample_times(pose.shape[0], fps_in, fps_out)
     new_pose = lerp_frames(pose, t)
     moving = t.alpha > 0
     if moving.any():
@@ -207,4 +233,4 @@ def resample_motion(
     for o, src in zip(out, (pose, rr, root_translation, face)):
         if o is not None:
             o[exact] = np.asarray(src, np.float32)[t.i0[exact]]
-    return out[0], out[1], out[2], out[3], t
+    return out[0], out[1], out[2], out[3]

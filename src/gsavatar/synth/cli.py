@@ -26,9 +26,9 @@ class Synth:
 
     out: Path
     """Output capture directory."""
-    preset: Literal["tiny", "small", "small_random", "second", "hard"] = "tiny"
+    preset: Literal["tiny", "small", "small_lit", "small_random", "second", "second_lit", "hard"] = "tiny"
     """Size/difficulty preset (tiny: tests, small: demo, small_random: appearance random in time, second: another
-    body/motion/mechanisms, hard: stability cases)."""
+    body/motion/mechanisms, small_lit / second_lit: the lit captures before 2026-12-08, hard: stability cases)."""
     seed: int | None = None
     """Random seed (same seed -> identical capture); None: the preset's."""
     anny_cache: Path | None = None

@@ -41,6 +41,7 @@ import numpy as np
 from gsavatar.data_schema.capture import Camera, Motion, Split, write_capture_metadata
 from gsavatar.data_schema.rig import BODY_GROUPS, Rig
 from gsavatar.data_schema.template import save_template
+from gsavatar.motion.resample import resample_motion_at, times_at
 from gsavatar.motion.retarget import motion_from_bvh_file
 from gsavatar.synth.appearance import AppearanceModel
 from gsavatar.synth.body import build_anny_body, default_anny_cache
@@ -67,15 +68,50 @@ GT_VERSION = 1
 
 
 # --------------------------------------------------------------------------- motion
-def load_motion(cfg: SynthConfig, rig: Rig) -> Motion:
-    """The BVH segment retargeted onto ``rig`` at ``cfg.fps`` with the ``cfg.root_xz`` treatment."""
+def tempo_curve(cfg: SynthConfig) -> np.ndarray:
+    """Playback rate of the motion at each output frame: ``exp(tempo_variation z_t)`` with ``z`` Gaussian noise
+    smoothed over ``tempo_smoothing_s`` and scaled to unit standard deviation (seeded by ``cfg.seed``); all ones
+    when ``tempo_variation`` is 0. [F] float64"""
     from scipy.ndimage import gaussian_filter1d
 
-    m = motion_from_bvh_file(cfg.bvh_path, rig, fps_out=cfg.fps, start=cfg.bvh_start, count=cfg.num_frames)
-    if len(m.pose) != cfg.num_frames:
+    F = cfg.num_frames
+    if cfg.tempo_variation == 0:
+        return np.ones(F)
+    if not (cfg.tempo_variation > 0 and cfg.tempo_smoothing_s > 0):
         raise ValueError(
-            f"{cfg.bvh_path}: only {len(m.pose)} frames from source frame {cfg.bvh_start} at "
-            f"{cfg.fps} fps, num_frames={cfg.num_frames} requested; lower bvh_start or num_frames"
+            f"need tempo_variation >= 0 and tempo_smoothing_s > 0, got {cfg.tempo_variation}, {cfg.tempo_smoothing_s}"
+        )
+    sigma = cfg.tempo_smoothing_s * cfg.fps
+    pad = int(np.ceil(4 * sigma))
+    z = gaussian_filter1d(np.random.default_rng([cfg.seed, 47]).standard_normal(F + 2 * pad), sigma)[pad : pad + F]
+    z = (z - z.mean()) / max(float(z.std()), 1e-12)
+    return np.exp(cfg.tempo_variation * z)
+
+
+def load_motion(cfg: SynthConfig, rig: Rig) -> Motion:
+    """The BVH segment retargeted onto ``rig`` at ``cfg.fps`` with the ``cfg.root_xz`` treatment, played at the
+    varying rate of :func:`tempo_curve` when ``cfg.tempo_variation > 0`` (the same poses reached at other
+    speeds: what makes a spring's phase differ between visits of one pose on a repeated cycle)."""
+    from scipy.ndimage import gaussian_filter1d
+
+    if cfg.tempo_variation == 0:
+        m = motion_from_bvh_file(cfg.bvh_path, rig, fps_out=cfg.fps, start=cfg.bvh_start, count=cfg.num_frames)
+        got = len(m.pose)
+    else:
+        rate = tempo_curve(cfg)
+        src = motion_from_bvh_file(cfg.bvh_path, rig, fps_out=None, start=cfg.bvh_start)  # every source frame
+        pos = np.concatenate([[0.0], np.cumsum(rate[:-1])]) * (src.fps / cfg.fps)  # source frame of each output
+        got = int(np.searchsorted(pos, len(src.pose) - 1, side="right"))
+        if got >= cfg.num_frames:
+            pose, rr, rt, _ = resample_motion_at(
+                src.pose, src.root_rotation, src.root_translation, None, rig, times_at(pos, len(src.pose))
+            )
+            m = src._replace(pose=pose, root_rotation=rr, root_translation=rt, fps=cfg.fps)
+    if got != cfg.num_frames:
+        raise ValueError(
+            f"{cfg.bvh_path}: only {got} frames from source frame {cfg.bvh_start} at {cfg.fps} fps"
+            + (f" (tempo_variation {cfg.tempo_variation})" if cfg.tempo_variation else "")
+            + f", num_frames={cfg.num_frames} requested; lower bvh_start or num_frames"
         )
     t = m.root_translation.astype(np.float64).copy()
     if cfg.root_xz in ("center", "treadmill"):

@@ -4,13 +4,19 @@ Presets:
 
 - ``tiny``: decimated body (~3k vertices), 6 cameras of 128x128, 12 frames, 256^2
   texture. For unit tests: builds in seconds once the Anny cache exists.
-- ``small``: the demo capture: full body (~13.5k vertices), 12 cameras of 256x256,
-  450 frames at 30 fps (15 s; the last 90 are the test segment), 512^2 texture, and appearance
-  that the motion's history causes (:data:`SMALL_MOTION_EFFECTS`: an accumulator, a hysteresis
-  and a spring) on top of weak pose-independent folds and drifts. A few minutes on 2 cores.
-- ``small_random``: the previous demo capture (120 frames, a shirt that switches between three
-  dyes independently of the motion): what re-initialising the predictor is for.
-- ``second``: another body, seed and CMU motion (01_03) with other mechanisms' parameters.
+- ``small``: the demo capture: full body (~13.5k vertices), 12 cameras of 256x256, 450 frames at 30 fps (15 s of
+  CMU 01_01's hops played at a varying tempo; the last 90 are the test segment), 512^2 texture, evenly lit (albedo
+  only), and appearance that the motion's history causes (:data:`SMALL_SPRINGS`: two springs driven by the
+  pelvis' and the feet's vertical acceleration) on top of weak pose-independent folds and drifts. A few minutes on
+  2 cores.
+- ``small_lit``: the demo capture until 2026-12-08: the same motion at its captured tempo, lit by a light fixed in
+  the room, with an accumulator, a hysteresis on the right hand's height and a spring (:data:`SMALL_MOTION_EFFECTS`).
+- ``small_random``: the capture before that (120 frames, a shirt that switches between three dyes independently of
+  the motion): what re-initialising the predictor is for.
+- ``second``: another body, seed and CMU motion (01_03, walking on uneven terrain, 900 frames), evenly lit, three
+  springs on other signals, body parts and parameters (:data:`SECOND_SPRINGS`).
+- ``second_lit``: ``second``'s body and motion lit, with :data:`SECOND_MOTION_EFFECTS` (an accumulator, a
+  hysteresis on the knee's speed, a spring).
 - ``hard``: stability stressors for texture projection/fusion: a sparse dome (texels
   seen by a single view), grazing top-down and floor-level cameras, a camera pointed
   away (sees nothing), a box occluding part of the body in one view only, and one
@@ -29,7 +35,7 @@ from gsavatar.synth.cameras import SpecialKind
 from gsavatar.synth.motion_effects import MotionEffect
 from gsavatar.utils.jsonio import config_to_json
 
-PresetName = Literal["tiny", "small", "small_random", "second", "hard"]
+PresetName = Literal["tiny", "small", "small_lit", "small_random", "second", "second_lit", "hard"]
 DEFAULT_BVH = "/usr/share/assimp/models/BVH/01_01.bvh"
 
 
@@ -63,6 +69,12 @@ class SynthConfig:
     """Motion capture (CMU BVH) that drives the body."""
     bvh_start: int = 960
     """First SOURCE frame of the BVH segment (01_01 is 120 fps; 960 = 8 s, just before a turn-around)."""
+    tempo_variation: float = 0.0
+    """Log standard deviation of the motion's playback rate (0: as captured). A smooth random tempo (0.35: about
+    0.5-1.6x) makes a cyclic motion reach the same poses at other speeds, so states driven by its derivatives are
+    no longer a function of the pose (:func:`gsavatar.synth.make.tempo_curve`)."""
+    tempo_smoothing_s: float = 1.0
+    """Time scale of the tempo's changes, seconds."""
     root_xz: Literal["keep", "center", "treadmill"] = "treadmill"
     """Horizontal root motion: ``keep`` as captured; ``center`` subtract the segment mean; ``treadmill``
     subtract a Gaussian-smoothed trajectory too, so travelling motion (01_01 hops 3.5 m) stays in the dome."""
@@ -165,7 +177,7 @@ SMALL_MOTION_EFFECTS = (
         damping=0.3,
     ),
 )
-"""The ``small`` capture's history-caused appearance (docs/synth.md)."""
+"""The ``small_lit`` capture's history-caused appearance (the demo's until 2026-12-08; docs/synth.md)."""
 SECOND_MOTION_EFFECTS = (
     MotionEffect(
         "flush",
@@ -207,7 +219,88 @@ SECOND_MOTION_EFFECTS = (
         damping=0.4,
     ),
 )
-"""The ``second`` capture's: other mechanisms' parameters, regions and effects, another motion and body."""
+"""The ``second_lit`` capture's: other mechanisms' parameters, regions and effects, another motion and body."""
+SMALL_SPRINGS = (
+    # The trousers flap after the feet push off or land: a slower spring on the feet's vertical acceleration dyes
+    # them.
+    MotionEffect(
+        "flap",
+        "spring",
+        "vertical_acceleration",
+        ("left_foot", "right_foot"),
+        "trousers",
+        "dye",
+        color=(1.5, 0.8, 0.55),
+        relative_to=None,
+        frequency_hz=1.2,
+        damping=0.3,
+    ),
+    # The shirt's hem swings after the pelvis moves up or down: a damped spring on its vertical acceleration tints a
+    # band of the shirt around the waist.
+    MotionEffect(
+        "hem",
+        "spring",
+        "vertical_acceleration",
+        ("pelvis",),
+        "shirt",
+        "tint",
+        strength=1.2,
+        relative_to=None,
+        y_range=(0.50, 0.70),
+        frequency_hz=1.5,
+        damping=0.3,
+    ),
+)
+"""The ``small`` capture's history-caused appearance: two springs (docs/synth.md). On CMU 01_01's steady hops a
+spring swings in step with the hop, so its phase is a function of the pose; the preset plays the motion at a varying
+tempo (``tempo_variation``) so that identical poses are reached at other speeds and the springs' states differ
+between them (docs/train.md "Springs on a periodic motion")."""
+SECOND_SPRINGS = (
+    # A light band on the shirt's hem moves after the chest rises or drops.
+    MotionEffect(
+        "swing",
+        "spring",
+        "vertical_acceleration",
+        ("chest",),
+        "shirt",
+        "band",
+        strength=0.06,
+        color=(0.95, 0.92, 0.85),
+        relative_to=None,
+        y_range=(0.57, 0.65),
+        frequency_hz=1.5,
+        damping=0.4,
+    ),
+    # The upper shirt's hue sways after the head rises or drops.
+    MotionEffect(
+        "sway",
+        "spring",
+        "vertical_acceleration",
+        ("head",),
+        "shirt",
+        "tint",
+        strength=1.0,
+        relative_to=None,
+        y_range=(0.68, 0.86),
+        frequency_hz=1.3,
+        damping=0.3,
+    ),
+    # The trousers' dye kicks after the feet move up or down (a spring on their vertical velocity).
+    MotionEffect(
+        "kick",
+        "spring",
+        "vertical_velocity",
+        ("left_foot", "right_foot"),
+        "trousers",
+        "dye",
+        color=(0.7, 0.9, 1.5),
+        relative_to=None,
+        frequency_hz=1.0,
+        damping=0.35,
+    ),
+)
+"""The ``second`` capture's: three springs on other signals, body parts, regions and parameters than ``small``'s,
+on CMU 01_03 (walking on uneven terrain, which does not repeat a cycle)."""
 _QUIET = dict(fold_strength=0.12, hair_hue_range=0.3)  # pose-independent changes kept, but small
 
 PRESETS: dict[str, SynthConfig] = {
@@ -231,6 +324,16 @@ PRESETS: dict[str, SynthConfig] = {
         test_cameras=2,
         num_frames=450,
         bvh_start=120,
+        tempo_variation=0.35,
+        shading=False,
+        appearance=AppearanceConfig(motion_effects=SMALL_SPRINGS, **_QUIET),
+    ),
+    "small_lit": SynthConfig(
+        preset="small_lit",
+        tex_size=512,
+        test_cameras=2,
+        num_frames=450,
+        bvh_start=120,
         appearance=AppearanceConfig(motion_effects=SMALL_MOTION_EFFECTS, **_QUIET),
     ),
     "small_random": SynthConfig(
@@ -245,7 +348,19 @@ PRESETS: dict[str, SynthConfig] = {
         body_seed=3,
         tex_size=512,
         test_cameras=2,
-        num_frames=900,  # 720 training frames: 360 were too few for its spring and hysteresis (docs/train.md)
+        num_frames=900,  # 720 training frames: 360 were too few for a spring and a hysteresis (docs/train.md)
+        bvh_path="/usr/share/assimp/models/BVH/01_03.bvh",
+        bvh_start=0,
+        shading=False,
+        appearance=AppearanceConfig(motion_effects=SECOND_SPRINGS, **_QUIET),
+    ),
+    "second_lit": SynthConfig(
+        preset="second_lit",
+        seed=1,
+        body_seed=3,
+        tex_size=512,
+        test_cameras=2,
+        num_frames=900,
         bvh_path="/usr/share/assimp/models/BVH/01_03.bvh",
         bvh_start=0,
         appearance=AppearanceConfig(motion_effects=SECOND_MOTION_EFFECTS, **_QUIET),
@@ -272,11 +387,15 @@ PRESETS: dict[str, SynthConfig] = {
 
 PRESET_HELP: dict[str, str] = {
     "tiny": "unit-test capture: ~3k-vertex body, 6 cameras 128x128, 12 frames, 256^2 texture (seconds)",
-    "small": "demo capture: full body, 12 cameras 256x256, 450 frames at 30 fps (90 test), 512^2 texture, appearance "
-    "caused by the motion's history (minutes)",
-    "small_random": "the previous demo capture: 120 frames, appearance random in time (shirt dye switches)",
-    "second": "a second capture: another body, 900 frames of CMU 01_03 (180 test), other history-caused mechanisms "
-    "(minutes)",
+    "small": "demo capture: full body, 12 cameras 256x256, 450 frames at 30 fps (90 test) of CMU 01_01 at a varying "
+    "tempo, 512^2 texture, evenly lit, appearance caused by the motion's history (two springs; minutes)",
+    "small_lit": "the demo capture until 2026-12-08: small's motion at its own tempo, lit by a light fixed in the "
+    "room, an accumulator, a hysteresis on the hand's height and a spring",
+    "small_random": "the capture before that: 120 frames, appearance random in time (shirt dye switches)",
+    "second": "a second capture: another body and seed, 900 frames of CMU 01_03 (180 test), evenly lit, three "
+    "springs on other signals and parts (minutes)",
+    "second_lit": "second's body and motion lit by a light fixed in the room, with an accumulator, a hysteresis on "
+    "the knee's speed and a spring",
     "hard": "stress capture: sparse dome + grazing/away cameras, one occluded and one corrupted view",
 }
 
