@@ -30,8 +30,9 @@ train() {  # train NAME [avatar-train flags...]: one run, resumed if it exists
 # latent PCA of 8 components as the output clamp; zero context = the training-mean latent (the default); an ensemble
 # of 2 predictors from 2 seeds of 400 steps each, averaged every step (the seed-to-seed spread of one predictor is
 # larger than its gain; two of 400 steps cost what four of 200 did and were closer to the encoder's latents); the
-# root's world orientation as six more pose slots (the synthetic captures' light is fixed in the room, and the
-# shading it bakes into the textures is the largest latent direction on `small`: docs/train.md "The room's light")
+# root's world orientation as six more pose slots (a light fixed in the room bakes shading into the textures as the
+# body turns: the largest latent direction of the lit `small_lit`, docs/train.md "The room's light"; the default
+# captures are evenly lit, and the recipe is the one measured on them)
 PRED_FLAGS="${PRED_FLAGS:---steps 400 --window 8 --model.latent-pca global --model.latent-pca-components 8 --ensemble 2 --model.world-orientation}"
 seed_runs() {  # run-to-run spread of Ours: the same recipe with the seeds in $SEEDS (default 1 2)
     for s in ${SEEDS-1 2}; do

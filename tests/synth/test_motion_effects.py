@@ -210,7 +210,7 @@ def test_history_features_are_the_stacked_frames_reparameterised():
 
 
 def test_presets_round_trip_their_motion_effects():
-    for name in ("small", "second"):
+    for name in ("small", "small_lit", "second", "second_lit"):
         cfg = PRESETS[name]
         assert cfg.appearance.motion_effects
         assert SynthConfig.from_json(cfg.to_json()) == cfg
@@ -252,3 +252,15 @@ def test_fairness_pose_read_picks_enough_components():
     r = predictability(feats, state[:, None], train, test)
     assert only12["pose_only"] < 0.3
     assert r["pose_only"] > 0.95 and r["pose_only_components"] == [40]
+
+
+def test_every_preset_is_named_by_the_cli_and_the_help():
+    import typing
+
+    from gsavatar.synth.cli import Synth
+    from gsavatar.synth.presets import PRESET_HELP, PresetName
+
+    names = set(PRESETS)
+    assert set(typing.get_args(typing.get_type_hints(Synth)["preset"])) == names
+    assert set(typing.get_args(PresetName)) == names and set(PRESET_HELP) == names
+    assert all(PRESETS[n].preset == n for n in names)
