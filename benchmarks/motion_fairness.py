@@ -2,11 +2,11 @@
 another BVH motion, before rendering anything (seconds).
 
     PYTHONPATH=src .venv/bin/python benchmarks/motion_fairness.py --preset small \
-        --bvh /usr/share/assimp/models/BVH/Boxing_Toes.bvh --start 0 [--springs-of second]
+        --bvh /usr/share/assimp/models/BVH/Boxing_Toes.bvh --start 0 [--springs-of second] [--tempo 0.35 --seed 2]
 
 Poses the preset's body with the BVH segment (``--start`` source frame, the preset's frame count and rate), computes
 the states of the preset's motion effects (``--springs-of P``: those of preset P instead, e.g. to try `small`'s springs
-on another motion) and prints :func:`gsavatar.synth.fairness.predictability` per state: R^2 on the test frames from
+on another motion; ``--tempo``: the motion at another tempo variation, ``--seed`` another tempo draw) and prints :func:`gsavatar.synth.fairness.predictability` per state: R^2 on the test frames from
 the current pose and from the last 10 poses. On a motion that repeats a cycle (CMU 01_01's hops) a spring's phase is
 a function of the pose, and the pose-only read is high (docs/train.md "Springs on a periodic motion").
 """
@@ -36,6 +36,8 @@ def main() -> None:
     ap.add_argument(
         "--springs-of", default=None, choices=sorted(PRESETS), help="take the motion effects of this preset"
     )
+    ap.add_argument("--tempo", type=float, default=None, help="tempo_variation (default: the preset's)")
+    ap.add_argument("--seed", type=int, default=None, help="seed of the tempo curve (default: the preset's)")
     a = ap.parse_args()
     cfg = PRESETS[a.preset]
     over = {}
@@ -43,6 +45,10 @@ def main() -> None:
         over["bvh_path"] = str(a.bvh)
     if a.start is not None:
         over["bvh_start"] = a.start
+    if a.tempo is not None:
+        over["tempo_variation"] = a.tempo
+    if a.seed is not None:
+        over["seed"] = a.seed
     cfg = dataclasses.replace(cfg, **over)
     effects = PRESETS[a.springs_of or a.preset].appearance.motion_effects
     if not effects:
@@ -60,6 +66,8 @@ def main() -> None:
                 "bvh": cfg.bvh_path,
                 "start": cfg.bvh_start,
                 "frames": cfg.num_frames,
+                "tempo_variation": cfg.tempo_variation,
+                "seed": cfg.seed,
                 "states": [e.name for e in effects],
                 "pose_only": r["pose_only"],
                 "history": r["history"],
