@@ -6,9 +6,11 @@ another BVH motion, before rendering anything (seconds).
 
 Poses the preset's body with the BVH segment (``--start`` source frame, the preset's frame count and rate), computes
 the states of the preset's motion effects (``--springs-of P``: those of preset P instead, e.g. to try `small`'s springs
-on another motion; ``--tempo``: the motion at another tempo variation, ``--seed`` another tempo draw) and prints :func:`gsavatar.synth.fairness.predictability` per state: R^2 on the test frames from
-the current pose and from the last 10 poses. On a motion that repeats a cycle (CMU 01_01's hops) a spring's phase is
-a function of the pose, and the pose-only read is high (docs/train.md "Springs on a periodic motion").
+on another motion; ``--tempo``: the motion at another tempo variation, ``--seed``: another tempo draw) and prints
+:func:`gsavatar.synth.fairness.predictability` per state: R^2 on the test frames from the current pose and from the
+last 10 poses. On a motion that repeats a cycle (CMU 01_01's hops) a spring's phase is a function of the pose, and the
+pose-only read is high (docs/train.md "Springs on a periodic motion"), unless the motion is played at a varying tempo
+(docs/synth.md "Why `small` plays its motion at a varying tempo").
 """
 
 from __future__ import annotations

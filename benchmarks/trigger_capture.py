@@ -19,7 +19,7 @@ from pathlib import Path
 from gsavatar.synth.body import default_anny_cache
 from gsavatar.synth.make import make_capture
 from gsavatar.synth.motion_effects import MotionEffect
-from gsavatar.synth.presets import PRESETS, SECOND_SPRINGS, SynthConfig
+from gsavatar.synth.presets import PRESETS, SECOND_SPRINGS, SMALL_SPRINGS, SynthConfig
 
 DERIVATIVE_SIGNALS = ("speed", "vertical_velocity", "vertical_acceleration")
 """Signals one pose does not show (a height does)."""
@@ -77,20 +77,7 @@ def dynamic_config(drop: tuple[str, ...] = ()) -> SynthConfig:
         elif e.name == "hem":
             effects.append(dataclasses.replace(e, y_range=(0.50, 0.70)))
         elif e.name == "sleeve":
-            effects.append(
-                MotionEffect(
-                    "flap",
-                    "spring",
-                    "vertical_acceleration",
-                    ("left_foot", "right_foot"),
-                    "trousers",
-                    "dye",
-                    color=e.color,
-                    relative_to=None,
-                    frequency_hz=1.2,
-                    damping=0.3,
-                )
-            )
+            effects.append(next(f for f in SMALL_SPRINGS if f.name == "flap"))  # the `small` preset's since then
     return unlit("small_lit", tuple(e for e in effects if e.name not in drop))
 
 

@@ -302,6 +302,28 @@ SECOND_SPRINGS = (
 """The ``second`` capture's: three springs on other signals, body parts, regions and parameters than ``small``'s,
 on CMU 01_03 (walking on uneven terrain, which does not repeat a cycle)."""
 _QUIET = dict(fold_strength=0.12, hair_hue_range=0.3)  # pose-independent changes kept, but small
+_SMALL = SynthConfig(
+    preset="small",
+    tex_size=512,
+    test_cameras=2,
+    num_frames=450,
+    bvh_start=120,
+    tempo_variation=0.35,
+    shading=False,
+    appearance=AppearanceConfig(motion_effects=SMALL_SPRINGS, **_QUIET),
+)
+_SECOND = SynthConfig(
+    preset="second",
+    seed=1,
+    body_seed=3,
+    tex_size=512,
+    test_cameras=2,
+    num_frames=900,  # 720 training frames: 360 were too few for a spring and a hysteresis (docs/train.md)
+    bvh_path="/usr/share/assimp/models/BVH/01_03.bvh",
+    bvh_start=0,
+    shading=False,
+    appearance=AppearanceConfig(motion_effects=SECOND_SPRINGS, **_QUIET),
+)
 
 PRESETS: dict[str, SynthConfig] = {
     "tiny": SynthConfig(
@@ -318,22 +340,13 @@ PRESETS: dict[str, SynthConfig] = {
         test_cameras=1,
         appearance=AppearanceConfig(fold_dwell_s=0.25, drift_period_s=2.0, face_period_s=0.8),
     ),
-    "small": SynthConfig(
-        preset="small",
-        tex_size=512,
-        test_cameras=2,
-        num_frames=450,
-        bvh_start=120,
-        tempo_variation=0.35,
-        shading=False,
-        appearance=AppearanceConfig(motion_effects=SMALL_SPRINGS, **_QUIET),
-    ),
-    "small_lit": SynthConfig(
+    "small": _SMALL,
+    # the lit captures: the light fixed in the room, the motion at its own tempo, other mechanisms
+    "small_lit": dataclasses.replace(
+        _SMALL,
         preset="small_lit",
-        tex_size=512,
-        test_cameras=2,
-        num_frames=450,
-        bvh_start=120,
+        tempo_variation=0.0,
+        shading=True,
         appearance=AppearanceConfig(motion_effects=SMALL_MOTION_EFFECTS, **_QUIET),
     ),
     "small_random": SynthConfig(
@@ -342,27 +355,11 @@ PRESETS: dict[str, SynthConfig] = {
         test_cameras=2,
         appearance=AppearanceConfig(dye_garment="shirt", dye_states=3, dye_dwell_s=1.0),
     ),
-    "second": SynthConfig(
-        preset="second",
-        seed=1,
-        body_seed=3,
-        tex_size=512,
-        test_cameras=2,
-        num_frames=900,  # 720 training frames: 360 were too few for a spring and a hysteresis (docs/train.md)
-        bvh_path="/usr/share/assimp/models/BVH/01_03.bvh",
-        bvh_start=0,
-        shading=False,
-        appearance=AppearanceConfig(motion_effects=SECOND_SPRINGS, **_QUIET),
-    ),
-    "second_lit": SynthConfig(
+    "second": _SECOND,
+    "second_lit": dataclasses.replace(
+        _SECOND,
         preset="second_lit",
-        seed=1,
-        body_seed=3,
-        tex_size=512,
-        test_cameras=2,
-        num_frames=900,
-        bvh_path="/usr/share/assimp/models/BVH/01_03.bvh",
-        bvh_start=0,
+        shading=True,
         appearance=AppearanceConfig(motion_effects=SECOND_MOTION_EFFECTS, **_QUIET),
     ),
     "hard": SynthConfig(
