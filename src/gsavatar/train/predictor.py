@@ -659,7 +659,7 @@ class PredictorTrainer:
         for step in range(self.step, end):
             logs = self._optimise(step, [k])
             if (step + 1) % cfg.log_every == 0 or step + 1 == stop:
-                logs_at[step + 1] = logs
+                logs_at[step + 1] = {**logs, "_time": time.perf_counter()}  # monotonic, shared by the processes
                 if k == 0:  # live progress (the members' merged lines follow at the checkpoint)
                     print(f"[predictor] member 0: step {step + 1}/{cfg.steps} loss {logs['total']:.4f}", flush=True)
         own = {id(p) for p in m.parameters()}
@@ -699,10 +699,11 @@ class PredictorTrainer:
         tmp.rmdir()
         logs = {}
         for step in sorted(member_logs[0]):
-            per = [ml[step] for ml in member_logs]
+            per = [dict(ml[step]) for ml in member_logs]
+            when = max(p.pop("_time") for p in per)  # the step's rate as it was reached, not at the merge
             logs = {key: sum(p[key] for p in per) / len(per) for key in per[0]}
             logs["total"] = sum(p["total"] for p in per)
-            self._log(step, logs, (step - n0) / (time.perf_counter() - t0))
+            self._log(step, logs, (step - n0) / max(when - t0, 1e-9))
         return logs
 
     def train(self) -> dict:
