@@ -15,8 +15,8 @@ import os
 import time
 from pathlib import Path
 
-VARIANTS = {
-    "small": ("small", {}),
+VARIANTS = {  # the shaded variant is the lit `small_lit` (`small` is unlit since 2026-12-08, and the same as unshaded)
+    "small": ("small_lit", {}),
     "small_unshaded": ("small", {"shading": False}),
     "hard_unshaded": ("hard", {"shading": False}),
 }
