@@ -7,7 +7,7 @@ another BVH motion, before rendering anything (seconds).
 Poses the preset's body with the BVH segment (``--start`` source frame, the preset's frame count and rate), computes
 the states of the preset's motion effects (``--springs-of P``: those of preset P instead, e.g. to try `small`'s springs
 on another motion; ``--tempo``: the motion at another tempo variation, ``--seed``: another tempo draw) and prints
-:func:`gsavatar.synth.fairness.predictability` per state: R^2 on the test frames from the current pose and from the
+:func:`gsavatar.synth.fairness.history_fairness` per state: R^2 on the test frames from the current pose and from the
 last 10 poses. On a motion that repeats a cycle (CMU 01_01's hops) a spring's phase is a function of the pose, and the
 pose-only read is high (docs/train.md "Springs on a periodic motion"), unless the motion is played at a varying tempo
 (docs/synth.md "Why `small` plays its motion at a varying tempo").
@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from gsavatar.synth.body import build_anny_body, default_anny_cache
-from gsavatar.synth.fairness import pose_features, predictability
+from gsavatar.synth.fairness import history_fairness
 from gsavatar.synth.make import load_motion, split_frames
 from gsavatar.synth.motion_effects import effect_level, joint_signal
 from gsavatar.synth.presets import PRESETS
@@ -61,7 +61,7 @@ def main() -> None:
     names = [j.name for j in rig.joints]
     levels = np.stack([effect_level(e, joint_signal(joints, names, e, cfg.fps), cfg.fps)[0] for e in effects], 1)
     train, test = (np.asarray(f) for f in split_frames(cfg))
-    r = predictability(pose_features(motion.pose, motion.root_translation, joints), levels, train, test, raw_columns=1)
+    r = history_fairness(motion, levels, train, test, joints=joints)  # what make_capture writes to gt/fairness.json
     print(
         json.dumps(
             {

@@ -94,7 +94,7 @@ def test_a_varying_tempo_hides_a_spring_phase_from_the_pose(rig_and_source):
     """On CMU 01_01's steady hops a spring on the pelvis' vertical acceleration swings in step with the hop, so the
     current pose tells it (R^2 > 0.5 on the test frames); played at small's varying tempo, the pose tells much
     less while the last 10 poses still tell it (docs/train.md "Springs on a periodic motion")."""
-    from gsavatar.synth.fairness import pose_features, predictability
+    from gsavatar.synth.fairness import history_fairness
     from gsavatar.synth.make import load_motion, split_frames
     from gsavatar.synth.motion_effects import effect_level, joint_signal
     from gsavatar.synth.render import pose_joint_positions
@@ -109,7 +109,7 @@ def test_a_varying_tempo_hides_a_spring_phase_from_the_pose(rig_and_source):
         joints = pose_joint_positions(rig, m.pose, m.root_rotation, m.root_translation)
         level = effect_level(hem, joint_signal(joints, names, hem, cfg.fps), cfg.fps)[0]
         train, test = (np.asarray(f) for f in split_frames(cfg))
-        r = predictability(pose_features(m.pose, m.root_translation, joints), level[:, None], train, test)
+        r = history_fairness(m, level[:, None], train, test, joints=joints)
         r2[tempo] = (r["pose_only"], r["history"])
     (p0, h0), (p1, h1) = r2[0.0], r2[PRESETS["small"].tempo_variation]
     assert p0 > 0.5 and h0 > 0.5, r2

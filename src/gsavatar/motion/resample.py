@@ -48,6 +48,20 @@ class ResampleTimes(NamedTuple):
 
 
 # --------------------------------------------------------------------------- stateless math
+def times_at(source_frames: np.ndarray, n_in: int) -> ResampleTimes:
+    """:class:`ResampleTimes` of arbitrary (fractional, non-decreasing or not) source frame positions, e.g. a
+    motion played at a varying tempo; a position within 1e-6 of a source frame is that frame.
+    source_frames [T_out] float in [0, n_in - 1]"""
+    s = np.asarray(source_frames, np.float64)
+    if s.ndim != 1 or not np.isfinite(s).all() or (s.size and (s.min() < -1e-9 or s.max() > n_in - 1 + 1e-9)):
+        raise ValueError(f"source frame positions must be finite and within [0, {n_in - 1}]")
+    s = np.clip(s, 0.0, n_in - 1)
+    i0 = np.minimum(np.floor(s + 1e-6).astype(np.int64), n_in - 1)
+    a = np.clip(s - i0, 0.0, 1.0)
+    a[a < 1e-6] = 0.0
+    return ResampleTimes(i0, np.minimum(i0 + 1, n_in - 1), a)
+
+
 def resample_times(n_in: int, fps_in: float, fps_out: float) -> ResampleTimes:
     """Source positions of the output frames ``k / fps_out`` within ``[0, (n_in - 1) / fps_in]``."""
     if n_in < 1:
@@ -61,13 +75,7 @@ def resample_times(n_in: int, fps_in: float, fps_out: float) -> ResampleTimes:
             f"resampling {n_in} frames from {fps_in:g} to {fps_out:g} fps makes {n_out} frames, "
             f"more than the {MAX_RESAMPLED_FRAMES} allowed"
         )
-    s = np.arange(n_out, dtype=np.float64) * ratio
-    i0 = np.floor(s + 1e-6).astype(np.int64)
-    a = s - i0
-    a[np.abs(a) < 1e-6] = 0.0
-    i0 = np.minimum(i0, n_in - 1)
-    a[i0 == n_in - 1] = 0.0
-    return ResampleTimes(i0, np.minimum(i0 + 1, n_in - 1), np.clip(a, 0.0, 1.0))
+    return times_at(np.minimum(np.arange(n_out, dtype=np.float64) * ratio, n_in - 1), n_in)
 
 
 def quat_slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
@@ -178,20 +186,6 @@ def resample_motion(
     Output frames that land on a source frame are copied bit-exactly."""
     t = resample_times(np.asarray(pose).shape[0], fps_in, fps_out)
     return (*resample_motion_at(pose, root_rotation, root_translation, face, rig, t), t)
-
-
-def times_at(source_frames: np.ndarray, n_in: int) -> ResampleTimes:
-    """:class:`ResampleTimes` of arbitrary (fractional, non-decreasing or not) source frame positions, e.g. a
-    motion played at a varying tempo. source_frames [T_out] float in [0, n_in - 1]"""
-    s = np.asarray(source_frames, np.float64)
-    if s.ndim != 1 or not np.isfinite(s).all() or (s.size and (s.min() < -1e-9 or s.max() > n_in - 1 + 1e-9)):
-        raise ValueError(f"source frame positions must be finite and within [0, {n_in - 1}]")
-    s = np.clip(s, 0.0, n_in - 1)
-    i0 = np.floor(s + 1e-9).astype(np.int64)
-    i0 = np.minimum(i0, n_in - 1)
-    a = np.clip(s - i0, 0.0, 1.0)
-    a[a < 1e-9] = 0.0
-    return ResampleTimes(i0, np.minimum(i0 + 1, n_in - 1), a)
 
 
 def resample_motion_at(
